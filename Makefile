@@ -1,0 +1,30 @@
+# Two entry points for a newcomer: `make demo` and `make test`. Both install everything first.
+PYTHON ?= python3
+SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
+SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libxrender1 libgomp1
+DEMO_OUT ?= demo_out
+
+.PHONY: setup system-packages demo test bench clean
+
+setup: .setup.stamp
+
+system-packages:
+	@missing=""; for p in $(SYSTEM_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then echo "installing system packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $$missing; fi
+
+.setup.stamp: pyproject.toml | system-packages
+	$(PYTHON) -m pip install -q -e ".[dev]"
+	@touch $@
+
+demo: setup
+	$(PYTHON) -m nuplan_occ.cli demo $(DEMO_OUT)
+
+test: setup
+	$(PYTHON) -m pytest -q
+
+bench: setup
+	$(PYTHON) -m nuplan_occ.bench bench
+
+clean:
+	rm -rf $(DEMO_OUT) bench/work bench/data .setup.stamp
