@@ -1,0 +1,1 @@
+"""The build DAG runner: stage declarations, content-keyed cache, per-scene tasks, executors."""

@@ -1,0 +1,94 @@
+"""Runs the stages of `stages.PIPELINE` for one scene, with every stage output cached under the work
+folder by a key of (stage, params, code version, input keys)."""
+
+from __future__ import annotations
+
+import resource
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from nuplan_occ.pipeline.cache import StageCache, stable_hash
+from nuplan_occ.pipeline.scene import SceneTask, source_fingerprint
+
+EventSink = Callable[[tuple[str, str, str]], None]
+"""Receives (log name, scene name, stage name) when a stage starts; "done" as the stage when finished."""
+
+
+class SceneError(RuntimeError):
+    """A scene could not be built at all (every output frame of it fails with this reason)."""
+
+
+@dataclass
+class SceneResult:
+    """What a worker returns for one scene. rows: manifest rows (already written to the scene's shard);
+    computed: stages that ran (the others were found in the cache); error: set when the scene failed."""
+
+    log_name: str
+    scene_name: str
+    rows: list[dict] = field(default_factory=list)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    computed: list[str] = field(default_factory=list)
+    error: str = ""
+    peak_rss_mb: float = 0.0  # peak RSS of the worker process so far
+
+
+def task_source_key(task: SceneTask) -> str:
+    """Identity of the scene's input: its DB file's fingerprint plus the scene token."""
+    return stable_hash("source", source_fingerprint([Path(task.db_path)]), task.scene_token, task.sensor_root,
+                       task.maps_root)
+
+
+def run_stages(task: SceneTask, pipeline: list, events: EventSink | None = None,
+               result: SceneResult | None = None) -> dict[str, Any]:
+    """All artifacts of the scene after running (or reusing) every stage; fills `result` timings."""
+    cache = StageCache(task.work_dir)
+    artifacts: dict[str, Any] = {"task": task}
+    keys: dict[str, str] = {"task": task_source_key(task)}
+    for stage in pipeline:
+        if events:
+            events((task.log_name, task.scene_name, stage.name))
+        params = task.params.get(stage.name, stage.params_type())
+        key = stable_hash(stage.name, params, stage.code_version(), [keys[name] for name in stage.inputs])
+        started = time.perf_counter()
+        outputs = cache.get(stage.name, key) if stage.cache else None
+        if outputs is None or not _outputs_still_valid(stage.name, outputs, task):
+            outputs = stage.run({name: artifacts[name] for name in stage.inputs}, params)
+            if stage.cache:
+                cache.put(stage.name, key, outputs)
+            if result is not None:
+                result.computed.append(stage.name)
+        if result is not None:
+            result.stage_seconds[stage.name] = time.perf_counter() - started
+        artifacts.update(outputs)
+        keys.update({name: key for name in outputs})
+    return artifacts
+
+
+def _outputs_still_valid(stage_name: str, outputs: dict[str, Any], task: SceneTask) -> bool:
+    """A cached write is only valid while its shard is still published."""
+    if stage_name != "write":
+        return True
+    from nuplan_occ.storage import shard_exists
+
+    return shard_exists(task.out_root, task.shard_key)
+
+
+def run_scene(task: SceneTask, events: EventSink | None = None) -> SceneResult:
+    """Build one scene; never raises for a bad scene: the error comes back in the result."""
+    from stages import PIPELINE
+
+    result = SceneResult(task.log_name, task.scene_name)
+    try:
+        artifacts = run_stages(task, PIPELINE, events, result)
+        result.rows = artifacts["rows"]
+    except Exception as exc:  # a scene failure is recorded, never fatal to the build
+        result.error = f"{type(exc).__name__}: {exc}"
+        result.rows = []
+        traceback.print_exc()
+    result.peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    if events:
+        events((task.log_name, task.scene_name, "done"))
+    return result

@@ -1,0 +1,21 @@
+"""The build DAG, top to bottom. Each module declares one Stage: inputs, outputs, typed params, and the
+pure functions of `nuplan_occ` it calls.
+
+    load -> split -> filter -> register -> aggregate -> reconstruct -> voxelize -> label -> visibility -> write
+"""
+
+from stages import aggregate, filter, label, load, reconstruct, register, split, visibility, voxelize, write
+
+PIPELINE = [
+    load.STAGE,
+    split.STAGE,
+    filter.STAGE,
+    register.STAGE,
+    aggregate.STAGE,
+    reconstruct.STAGE,
+    voxelize.STAGE,
+    label.STAGE,
+    visibility.STAGE,
+    write.STAGE,
+]
+"""The stages in execution order; every stage's inputs are produced by the stages before it."""

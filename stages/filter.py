@@ -1,0 +1,41 @@
+"""Stage 2, filter (FBSA): statistical outlier removal on each sweep's background points.
+
+Inputs: `splits`. Outputs: `background` (list of (n, 3) ego-frame points per sweep, None for failed
+sweeps) and `outliers_removed` (count per sweep).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from nuplan_occ.fbsa.outliers import remove_statistical_outliers
+from nuplan_occ.pipeline.stage import Stage
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """method: "knn" (Open3D statistical outlier removal) or "global" (the paper's ||p - mu|| < k sigma)."""
+
+    method: str = "knn"
+    nb_neighbors: int = 20
+    std_ratio: float = 2.0
+    k_sigma: float = 3.0
+
+
+def run(inputs: dict, params: FilterParams) -> dict:
+    background, removed = [], []
+    for split in inputs["splits"]:
+        if split is None:
+            background.append(None)
+            removed.append(0)
+            continue
+        points = split.background.xyz
+        keep = remove_statistical_outliers(points, method=params.method, nb_neighbors=params.nb_neighbors,
+                                           std_ratio=params.std_ratio, k_sigma=params.k_sigma)
+        background.append(points[keep])
+        removed.append(int((~keep).sum()))
+    return {"background": background, "outliers_removed": removed}
+
+
+STAGE = Stage("filter", inputs=("splits",), outputs=("background", "outliers_removed"),
+              params_type=FilterParams, run=run, code=("nuplan_occ.fbsa.outliers",), doc=__doc__ or "")

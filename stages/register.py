@@ -1,0 +1,24 @@
+"""Stage 3, register (FBSA): refine the logged ego poses by ICP on the filtered background, with
+the logged relative motion as the prior; every correction is gated (poor fit or implausible jump ->
+keep the logged pose, with the reason recorded).
+
+Inputs: `scene`, `background`. Outputs: `registration` (RegistrationResult; poses are T_global_from_ego).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nuplan_occ.fbsa.register import RegistrationParams, refine_poses
+from nuplan_occ.pipeline.stage import Stage
+
+
+def run(inputs: dict, params: RegistrationParams) -> dict:
+    scene = inputs["scene"]
+    clouds = [np.zeros((0, 3)) if points is None else points for points in inputs["background"]]
+    logged = np.stack([sweep.logged_pose for sweep in scene.sweeps])
+    return {"registration": refine_poses(clouds, logged, params)}
+
+
+STAGE = Stage("register", inputs=("scene", "background"), outputs=("registration",),
+              params_type=RegistrationParams, run=run, code=("nuplan_occ.fbsa.register",), doc=__doc__ or "")
