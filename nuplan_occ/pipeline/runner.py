@@ -41,30 +41,53 @@ def task_source_key(task: SceneTask) -> str:
                        task.maps_root)
 
 
-def run_stages(task: SceneTask, pipeline: list, events: EventSink | None = None,
-               result: SceneResult | None = None) -> dict[str, Any]:
-    """All artifacts of the scene after running (or reusing) every stage; fills `result` timings."""
-    cache = StageCache(task.work_dir)
-    artifacts: dict[str, Any] = {"task": task}
-    keys: dict[str, str] = {"task": task_source_key(task)}
+def stage_keys(task: SceneTask, pipeline: list) -> dict[str, str]:
+    """Cache key of every stage, derived from keys alone (no stage has to run to know them):
+    key = hash(stage name, params, code version, keys of the stages that made its inputs)."""
+    artifact_keys: dict[str, str] = {"task": task_source_key(task)}
+    keys: dict[str, str] = {}
     for stage in pipeline:
+        params = task.params.get(stage.name, stage.params_type())
+        keys[stage.name] = stable_hash(stage.name, params, stage.code_version(),
+                                       [artifact_keys[name] for name in stage.inputs])
+        artifact_keys.update({name: keys[stage.name] for name in stage.outputs})
+    return keys
+
+
+def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events: EventSink | None = None,
+               result: SceneResult | None = None) -> dict[str, Any]:
+    """The `wanted` artifacts of the scene. Works backwards from them: a stage runs only when its
+    outputs are not in the cache, so a finished scene is answered from the cache without reading input."""
+    cache = StageCache(task.work_dir)
+    keys = stage_keys(task, pipeline)
+    producer = {name: stage for stage in pipeline for name in stage.outputs}
+    artifacts: dict[str, Any] = {"task": task}
+
+    def obtain(name: str) -> Any:
+        if name not in artifacts:
+            stage = producer[name]
+            artifacts.update(run_or_reuse(stage))
+        return artifacts[name]
+
+    def run_or_reuse(stage) -> dict[str, Any]:
+        params = task.params.get(stage.name, stage.params_type())
+        outputs = cache.get(stage.name, keys[stage.name]) if stage.cache else None
+        if outputs is not None and _outputs_still_valid(stage.name, outputs, task):
+            return outputs
+        inputs = {name: obtain(name) for name in stage.inputs}
         if events:
             events((task.log_name, task.scene_name, stage.name))
-        params = task.params.get(stage.name, stage.params_type())
-        key = stable_hash(stage.name, params, stage.code_version(), [keys[name] for name in stage.inputs])
         started = time.perf_counter()
-        outputs = cache.get(stage.name, key) if stage.cache else None
-        if outputs is None or not _outputs_still_valid(stage.name, outputs, task):
-            outputs = stage.run({name: artifacts[name] for name in stage.inputs}, params)
-            if stage.cache:
-                cache.put(stage.name, key, outputs)
-            if result is not None:
-                result.computed.append(stage.name)
+        outputs = stage.run(inputs, params)
         if result is not None:
             result.stage_seconds[stage.name] = time.perf_counter() - started
-        artifacts.update(outputs)
-        keys.update({name: key for name in outputs})
-    return artifacts
+            if stage.cache:
+                result.computed.append(stage.name)
+        if stage.cache:
+            cache.put(stage.name, keys[stage.name], outputs)
+        return outputs
+
+    return {name: obtain(name) for name in wanted}
 
 
 def _outputs_still_valid(stage_name: str, outputs: dict[str, Any], task: SceneTask) -> bool:
@@ -82,7 +105,7 @@ def run_scene(task: SceneTask, events: EventSink | None = None) -> SceneResult:
 
     result = SceneResult(task.log_name, task.scene_name)
     try:
-        artifacts = run_stages(task, PIPELINE, events, result)
+        artifacts = run_stages(task, PIPELINE, ("rows",), events, result)
         result.rows = artifacts["rows"]
     except Exception as exc:  # a scene failure is recorded, never fatal to the build
         result.error = f"{type(exc).__name__}: {exc}"

@@ -20,7 +20,7 @@ from nuplan_occ.pipeline.build import run_build
 from nuplan_occ.storage import read_manifest
 from nuplan_occ.storage.validate import validate_dataset
 
-from .conftest import build_params
+from pipeline_helpers import build_params
 
 pytestmark = pytest.mark.slow
 

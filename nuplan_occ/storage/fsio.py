@@ -1,0 +1,43 @@
+"""Filesystem access for dataset roots: local paths and fsspec URLs (file://, memory://, s3://).
+
+Publishing is atomic: on a local filesystem a file is written to a hidden temp name in the same
+directory (`.<name>.tmp-<pid>-<rand>`), fsynced, then renamed over the final name; on object stores
+(memory://, s3://) a single put of the whole object is atomic. Readers never look at temp names.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+
+import fsspec
+from fsspec.implementations.local import LocalFileSystem
+
+TEMP_MARKER = ".tmp-"
+
+
+def resolve(root: str) -> tuple[fsspec.AbstractFileSystem, str]:
+    """(filesystem, root path without trailing slash) of a local path or fsspec URL."""
+    fs, path = fsspec.core.url_to_fs(str(root))
+    return fs, path.rstrip("/") or "/"
+
+
+def is_local(fs: fsspec.AbstractFileSystem) -> bool:
+    """True for the local filesystem, where paths are OS paths."""
+    return isinstance(fs, LocalFileSystem)
+
+
+def atomic_put(fs: fsspec.AbstractFileSystem, path: str, data: bytes) -> None:
+    """Publish `data` at `path` so that readers see either the old object or the whole new one."""
+    parent, name = path.rsplit("/", 1)
+    if is_local(fs):
+        os.makedirs(parent, exist_ok=True)
+        tmp = f"{parent}/.{name}{TEMP_MARKER}{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    else:
+        fs.pipe_file(path, data)
+

@@ -1,0 +1,134 @@
+"""The Parquet manifest: one row per frame, the commit record of the dataset.
+
+Column order is fixed: the base columns below, then `<member>_offset`, `<member>_nbytes`,
+`<member>_crc32` for every member of `MEMBERS` (null when the frame lacks the member), then the
+extra columns of the records (`FrameRecord.columns`) sorted by name. Rows are sorted by
+(log_id, timestamp_us, frame_index, token) and unique in (log, token). Offsets are byte offsets of a
+member's data inside `<root>/shards/<shard>.tar`; crc32 is `zlib.crc32` of the stored (compressed)
+bytes. `class_hist[i]` counts the voxels of label id i (length = largest label id + 1).
+`ego_to_global` is T_global_from_ego flattened row-major (16 float64).
+"""
+
+from __future__ import annotations
+
+import io
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from nuplan_occ.storage.codecs import MEMBERS
+from nuplan_occ.storage.errors import DatasetFormatError, InvalidFrameError
+from nuplan_occ.storage.fsio import resolve
+
+MANIFEST_NAME = "manifest.parquet"
+ROW_GROUP_SIZE = 131072
+SORT_KEYS = ("log_id", "timestamp_us", "frame_index", "token")
+
+MEMBER_FIELDS = ("offset", "nbytes", "crc32")
+
+
+def base_schema(hist_len: int) -> pa.Schema:
+    """Arrow schema of the base and member columns (extra columns follow them)."""
+    fields = [
+        ("key", pa.string()),
+        ("log", pa.string()),
+        ("log_id", pa.int64()),
+        ("scene_token", pa.string()),
+        ("scene_name", pa.string()),
+        ("frame_index", pa.int64()),
+        ("token", pa.string()),
+        ("timestamp_us", pa.int64()),
+        ("ego_to_global", pa.list_(pa.float64(), 16)),
+        ("shard", pa.string()),
+        ("status", pa.string()),
+        ("failure_reason", pa.string()),
+        ("class_hist", pa.list_(pa.int64(), hist_len)),
+    ]
+    for member in MEMBERS:
+        fields += [
+            (f"{member}_offset", pa.int64()),
+            (f"{member}_nbytes", pa.int64()),
+            (f"{member}_crc32", pa.uint32()),
+        ]
+    return pa.schema(fields)
+
+
+RESERVED_COLUMNS = frozenset(base_schema(1).names)
+
+
+def _infer_type(name: str, values: list) -> pa.DataType:
+    """Arrow type of an extra column from its Python values (None = null)."""
+    kinds = {type(v) for v in values if v is not None}
+    if not kinds:
+        return pa.null()
+    if kinds == {bool}:
+        return pa.bool_()
+    if kinds == {int}:
+        return pa.int64()
+    if kinds <= {int, float}:
+        return pa.float64()
+    if kinds == {str}:
+        return pa.string()
+    raise InvalidFrameError(f"manifest column {name!r} mixes value types {sorted(k.__name__ for k in kinds)}")
+
+
+def rows_to_table(rows: list[dict], hist_len: int) -> pa.Table:
+    """Arrow table of writer rows (missing member columns become null)."""
+    schema = base_schema(hist_len)
+    extra = sorted({name for row in rows for name in row} - set(schema.names))
+    columns = {name: [row.get(name) for row in rows] for name in (*schema.names, *extra)}
+    fields = list(schema) + [pa.field(name, _infer_type(name, columns[name])) for name in extra]
+    arrays = [pa.array(columns[f.name], type=f.type) for f in fields]
+    return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
+
+
+def _identity(table: pa.Table) -> pa.ChunkedArray:
+    return pc.binary_join_element_wise(table["log"], table["token"], "\x1f")
+
+
+def _ordered(table: pa.Table) -> pa.Table:
+    """Fixed column order (base + members, then extras by name) and fixed row order."""
+    n_base = len(base_schema(1))
+    names = table.column_names[:n_base] + sorted(table.column_names[n_base:])
+    table = table.select(names)
+    return table.sort_by([(k, "ascending") for k in SORT_KEYS]).combine_chunks()
+
+
+def merge(existing: pa.Table | None, new: pa.Table) -> pa.Table:
+    """`existing` with the rows of `new` added; a new row replaces an existing one of equal (log, token)."""
+    new_ids = _identity(new)
+    if len(pc.unique(new_ids)) != len(new_ids):
+        raise InvalidFrameError("commit: the rows repeat a (log, token) pair")
+    if existing is None:
+        return _ordered(new)
+    n_base = len(base_schema(1))
+    try:
+        # a table read back from Parquet names list children "element"; restore the writer's types
+        existing = existing.cast(pa.schema(list(new.schema)[:n_base] + list(existing.schema)[n_base:]))
+        kept = existing.filter(pc.invert(pc.is_in(_identity(existing), value_set=new_ids.combine_chunks())))
+        merged = pa.concat_tables([kept, new], promote_options="permissive")
+    except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError, ValueError) as exc:
+        raise DatasetFormatError(f"commit: new rows do not fit the published manifest's columns: {exc}") from exc
+    return _ordered(merged)
+
+
+def to_parquet_bytes(table: pa.Table) -> bytes:
+    """Parquet file bytes (zstd, 128 k-row row groups); equal tables give equal bytes."""
+    sink = io.BytesIO()
+    pq.write_table(table, sink, compression="zstd", row_group_size=ROW_GROUP_SIZE)
+    return sink.getvalue()
+
+
+def read_manifest(root: str) -> pa.Table:
+    """The published manifest of a dataset root (all rows, failed ones included)."""
+    fs, path = resolve(root)
+    target = f"{path}/{MANIFEST_NAME}"
+    try:
+        data = fs.cat_file(target)
+    except FileNotFoundError as exc:
+        raise DatasetFormatError(f"{root}: no {MANIFEST_NAME} (nothing committed?)") from exc
+    try:
+        return pq.read_table(io.BytesIO(data))
+    except pa.ArrowException as exc:
+        raise DatasetFormatError(f"{target}: not a readable Parquet file ({exc})") from exc

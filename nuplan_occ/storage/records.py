@@ -1,0 +1,51 @@
+"""`FrameRecord`, the unit the writer stores, and the frame key that names its tar members."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+STATUS_OK = "ok"
+STATUS_FAILED = "failed"
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9_-]")
+
+
+@dataclass
+class FrameRecord:
+    """One output frame of a log.
+
+    `ego_to_global`: (4, 4) float64, T_global_from_ego (ego = rear axle at `timestamp_us`, global = the
+    map's UTM frame). `arrays`: any of the members in `nuplan_occ.storage.codecs.MEMBERS`, indexed
+    [x, y, z] in that ego frame (`flow` in m/s, ego frame). `columns`: extra scalar manifest columns.
+    A failed frame (`status="failed"`) carries no arrays, only its `failure_reason`.
+    """
+
+    log: str
+    log_id: int
+    scene_token: str
+    scene_name: str
+    frame_index: int
+    token: str
+    timestamp_us: int
+    ego_to_global: np.ndarray
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    columns: dict[str, float | int | bool | str] = field(default_factory=dict)
+    status: str = STATUS_OK
+    failure_reason: str = ""
+
+    @property
+    def key(self) -> str:
+        """The frame's WebDataset key, see `frame_key`."""
+        return frame_key(self.log, self.frame_index)
+
+
+def frame_key(log: str, frame_index: int) -> str:
+    """`{log}-{frame_index:06d}` with every character of `log` outside [A-Za-z0-9_-] replaced by "_".
+
+    WebDataset splits a member name at the first dot of its base name into key and suffix, and nuPlan
+    log names contain dots (`2021.05.12.22.00.38_veh-35_01008_01518`), so the key has none.
+    """
+    return f"{_UNSAFE.sub('_', log)}-{int(frame_index):06d}"

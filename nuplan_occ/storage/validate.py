@@ -1,0 +1,143 @@
+"""`validate_dataset(root)`: every problem of a published dataset, as readable strings.
+
+Checks dataset.json and every manifest row against the JSON Schemas (schemas/dataset_metadata.json,
+schemas/manifest.json), the manifest's Arrow column types, row order and (log, token) uniqueness, and
+for every ok row that its shard exists, that each member's stored bytes match the row's crc32, that
+the tar header before the data names `<key>.<suffix>`, and that the zstd content size fits the grid.
+Leftover temp files of interrupted writes are not part of the dataset and are ignored.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections import defaultdict
+from functools import lru_cache
+
+import jsonschema
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import zstandard
+
+import schemas
+from nuplan_occ.grid import GridSpec
+from nuplan_occ.storage.codecs import MEMBERS
+from nuplan_occ.storage.errors import DatasetFormatError
+from nuplan_occ.storage.fsio import resolve
+from nuplan_occ.storage.manifest import SORT_KEYS, base_schema, read_manifest
+from nuplan_occ.storage.metadata import read_metadata
+from nuplan_occ.storage.writer import shard_path
+
+MAX_REPORTED = 50
+EXTRA_TYPES = (pa.bool_(), pa.int64(), pa.float64(), pa.string(), pa.null())
+TAR_BLOCK = 512
+
+
+@lru_cache(maxsize=None)
+def _validator(schema_name: str) -> jsonschema.Draft202012Validator:
+    return jsonschema.Draft202012Validator(schemas.load(schema_name))
+
+
+def _schema_problems(instance: object, schema_name: str, where: str) -> list[str]:
+    validator = _validator(schema_name)
+    return [
+        f"{where}: {'/'.join(map(str, err.absolute_path)) or '<root>'}: {err.message}"
+        for err in sorted(validator.iter_errors(instance), key=lambda e: list(map(str, e.absolute_path)))
+    ]
+
+
+def _column_problems(table: pa.Table, hist_len: int, where: str) -> list[str]:
+    problems = []
+    expected = base_schema(hist_len)
+    for field in expected:
+        if field.name not in table.column_names:
+            problems.append(f"{where}: missing column {field.name!r}")
+        elif table.schema.field(field.name).type != field.type:
+            actual = table.schema.field(field.name).type
+            problems.append(f"{where}: column {field.name!r} is {actual}, expected {field.type}")
+    for field in table.schema:
+        if field.name not in expected.names and field.type not in EXTRA_TYPES:
+            problems.append(f"{where}: extra column {field.name!r} has non-scalar type {field.type}")
+    return problems
+
+
+def _order_problems(table: pa.Table, where: str) -> list[str]:
+    problems = []
+    ids = pc.binary_join_element_wise(table["log"], table["token"], "\x1f")
+    if len(pc.unique(ids)) != table.num_rows:
+        problems.append(f"{where}: (log, token) pairs are not unique")
+    order = pc.sort_indices(table, sort_keys=[(k, "ascending") for k in SORT_KEYS]).to_numpy()
+    if not np.array_equal(order, np.arange(table.num_rows)):
+        problems.append(f"{where}: rows are not sorted by {SORT_KEYS}")
+    return problems
+
+
+def _member_problems(data: bytes, path: str, row: dict, member: str, grid: GridSpec) -> list[str]:
+    spec = MEMBERS[member]
+    offset, nbytes, crc = row[f"{member}_offset"], row[f"{member}_nbytes"], row[f"{member}_crc32"]
+    where = f"{path}: {row['key']}.{spec.suffix}"
+    blob = data[offset: offset + nbytes]
+    if len(blob) != nbytes:
+        return [f"{where}: range [{offset}, {offset + nbytes}) runs past the end of the shard ({len(data)} bytes)"]
+    if zlib.crc32(blob) != crc:
+        return [f"{where}: crc32 {zlib.crc32(blob):#010x} != manifest {crc:#010x} (checksum mismatch)"]
+    problems = []
+    expected_name = f"{row['key']}.{spec.suffix}".encode()
+    header_name = data[offset - TAR_BLOCK: offset - TAR_BLOCK + 100].split(b"\0", 1)[0] if offset >= TAR_BLOCK else b""
+    truncated = len(header_name) == 100 and expected_name.startswith(header_name)
+    if header_name != expected_name and not truncated:
+        problems.append(f"{where}: tar header before offset {offset} names {header_name!r}")
+    raw_size = int(np.prod(spec.shape(grid)))
+    raw_size = (raw_size + 7) // 8 if spec.packbits else raw_size * np.dtype(spec.dtype).itemsize
+    try:
+        size = zstandard.frame_content_size(blob)
+    except zstandard.ZstdError as exc:
+        return problems + [f"{where}: not a zstd frame ({exc})"]
+    if size != raw_size:
+        problems.append(f"{where}: zstd content size {size} != {raw_size} expected for the grid")
+    return problems
+
+
+def _shard_problems(root: str, rows: list[dict], grid: GridSpec) -> list[str]:
+    fs, path = resolve(root)
+    by_shard: dict[str, list[dict]] = defaultdict(list)
+    for row in rows:
+        if row["status"] == "ok":
+            by_shard[row["shard"]].append(row)
+    problems = []
+    for shard, shard_rows in sorted(by_shard.items()):
+        spath = shard_path(path, shard)
+        try:
+            data = fs.cat_file(spath)
+        except FileNotFoundError:
+            problems.append(f"{spath}: shard missing ({len(shard_rows)} committed frames point to it)")
+            continue
+        for row in shard_rows:
+            for member in MEMBERS:
+                if row.get(f"{member}_offset") is not None:
+                    problems += _member_problems(data, spath, row, member, grid)
+    return problems
+
+
+def validate_dataset(root: str) -> list[str]:
+    """Problems found in the dataset at `root` (empty list: valid). See the module docstring."""
+    try:
+        metadata = read_metadata(root)
+        table = read_manifest(root)
+    except DatasetFormatError as exc:
+        return [str(exc)]
+    problems = _schema_problems(metadata, "dataset_metadata", f"{root}/dataset.json")
+    if problems:
+        return problems
+    grid = GridSpec.from_dict(metadata["grid"])
+    where = f"{root}/manifest.parquet"
+    problems += _column_problems(table, int(metadata["class_hist_length"]), where)
+    problems += _order_problems(table, where)
+    rows = table.to_pylist()
+    for row in rows:
+        problems += _schema_problems(row, "manifest", f"{where}: row {row.get('key')!r}")
+        if len(problems) > MAX_REPORTED:
+            return problems[:MAX_REPORTED] + ["... (stopped after the first problems)"]
+    if not problems:
+        problems += _shard_problems(root, rows, grid)
+    return problems

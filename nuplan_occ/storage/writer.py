@@ -1,0 +1,233 @@
+"""`DatasetWriter`: encodes frames into tar shards and commits their rows to the manifest.
+
+Layout under the root (local path or fsspec URL):
+    dataset.json                 metadata (see `metadata.py`)
+    manifest.parquet             one row per frame, the commit record (see `manifest.py`)
+    shards/<shard_key>.tar       WebDataset-style members `<frame_key>.<suffix>` (see `codecs.py`)
+Shards and the two top-level files are published atomically (`fsio.atomic_put`). A shard written but
+never committed holds no frame of the dataset; rewriting a shard with equal input gives equal bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import zlib
+from collections.abc import Mapping
+
+import numpy as np
+import pyarrow as pa
+
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.storage import codecs
+from nuplan_occ.storage.codecs import MEMBERS
+from nuplan_occ.storage.errors import DatasetFormatError, InvalidFrameError
+from nuplan_occ.storage.fsio import atomic_put, resolve
+from nuplan_occ.storage.manifest import (
+    MANIFEST_NAME, MEMBER_FIELDS, RESERVED_COLUMNS, merge, read_manifest, rows_to_table, to_parquet_bytes,
+)
+from nuplan_occ.storage.metadata import METADATA_NAME, build_metadata, label_ids, metadata_bytes
+from nuplan_occ.storage.records import STATUS_FAILED, STATUS_OK, FrameRecord
+from nuplan_occ.storage.tarpack import pack_tar
+
+_SHARD_KEY = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
+_COLUMN_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+def shard_path(root_path: str, shard_key: str) -> str:
+    """Path of a shard under a resolved root path."""
+    return f"{root_path}/shards/{shard_key}.tar"
+
+
+def shard_exists(root: str, shard_key: str) -> bool:
+    """True if `<root>/shards/<shard_key>.tar` is published (committed or not)."""
+    fs, path = resolve(root)
+    return fs.exists(shard_path(path, shard_key))
+
+
+def _check_shard_key(shard_key: str) -> None:
+    if not isinstance(shard_key, str) or not _SHARD_KEY.match(shard_key) or any(
+        part in (".", "..") for part in shard_key.split("/")
+    ):
+        raise InvalidFrameError(f"shard key {shard_key!r}: use [A-Za-z0-9_.-] parts joined by '/'")
+
+
+def _scalar(name: str, value: object, where: str) -> float | int | bool | str | None:
+    """A column value as a plain Python scalar; non-finite floats become None (null)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    raise InvalidFrameError(f"{where}: column {name!r} has a {type(value).__name__}, expected a scalar")
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+class DatasetWriter:
+    """Writes shards of `FrameRecord`s and commits their manifest rows under `root`.
+
+    metadata: must hold "params" (any JSON); the writer adds grid, label map, member codecs, software
+    and schema version. grid: the arrays' grid (default 400 x 400 x 32). zstd_levels: member name ->
+    zstd level, overriding the defaults (semantics 9, others 3).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        metadata: dict,
+        *,
+        grid: GridSpec = DEFAULT_GRID,
+        zstd_levels: Mapping[str, int] | None = None,
+    ):
+        unknown = sorted(set(zstd_levels or {}) - set(MEMBERS))
+        if unknown:
+            raise InvalidFrameError(f"zstd_levels: unknown members {unknown}")
+        self.root = root
+        self.grid = grid
+        self.levels = {name: spec.default_level for name, spec in MEMBERS.items()} | dict(zstd_levels or {})
+        self.metadata = build_metadata(metadata, grid, self.levels)
+        self._fs, self._path = resolve(root)
+        self._label_ids = np.array(label_ids(self.metadata["labels"]))
+        self._hist_len = int(self.metadata["class_hist_length"])
+
+    # ------------------------------------------------------------------ shards
+    def write_shard(self, shard_key: str, records: list[FrameRecord]) -> list[dict]:
+        """Encode `records` into `<root>/shards/<shard_key>.tar` (atomic) and return their manifest rows.
+
+        Ok frames are stored in frame-key order, each as its array members sorted by suffix, then
+        `<key>.json`; failed frames have no members (only their manifest row). The returned rows are
+        plain JSON-able dicts (every manifest column present, null where absent) for `commit`.
+        """
+        _check_shard_key(shard_key)
+        records = sorted(records, key=lambda r: r.key)
+        keys = [r.key for r in records]
+        if len(set(keys)) != len(keys):
+            raise InvalidFrameError(f"shard {shard_key!r}: two records share a frame key (log, frame_index)")
+        members: list[tuple[str, bytes]] = []
+        rows = []
+        for record in records:
+            row, frame_members = self._encode_frame(record, shard_key)
+            members += frame_members
+            rows.append(row)
+        data, spans = pack_tar(members)
+        for row in rows:
+            for name, spec in MEMBERS.items():
+                span = spans.get(f"{row['key']}.{spec.suffix}")
+                if span is not None:
+                    row[f"{name}_offset"], row[f"{name}_nbytes"] = span
+        atomic_put(self._fs, shard_path(self._path, shard_key), data)
+        return rows
+
+    def _encode_frame(self, record: FrameRecord, shard_key: str) -> tuple[dict, list[tuple[str, bytes]]]:
+        """Manifest row (offsets still missing) and tar members of one checked record."""
+        where = f"shard {shard_key!r}, frame {record.key!r}"
+        pose = self._check_identity(record, where)
+        columns = self._check_columns(record, where)
+        row: dict = {
+            "key": record.key,
+            "log": record.log,
+            "log_id": int(record.log_id),
+            "scene_token": record.scene_token,
+            "scene_name": record.scene_name,
+            "frame_index": int(record.frame_index),
+            "token": record.token,
+            "timestamp_us": int(record.timestamp_us),
+            "ego_to_global": pose.reshape(-1).tolist(),
+            "shard": shard_key,
+            "status": record.status,
+            "failure_reason": record.failure_reason,
+            "class_hist": None,
+            **{f"{name}_{field}": None for name in MEMBERS for field in MEMBER_FIELDS},
+        }
+        if record.status == STATUS_FAILED:
+            row.update(columns)
+            return row, []
+        blobs: list[tuple[str, bytes]] = []
+        for name in sorted(record.arrays, key=lambda n: MEMBERS[n].suffix):
+            spec, array = MEMBERS[name], record.arrays[name]
+            if name == "semantics":
+                row["class_hist"] = self._class_hist(array, where)
+            blob = codecs.encode(spec, array, self.levels[name])
+            row[f"{name}_crc32"] = zlib.crc32(blob)
+            blobs.append((f"{record.key}.{spec.suffix}", blob))
+        frame_json = {k: row[k] for k in ("key", "log", "log_id", "scene_token", "scene_name", "frame_index",
+                                          "token", "timestamp_us", "ego_to_global")}
+        frame_json["members"] = {name: MEMBERS[name].suffix for name in sorted(record.arrays)}
+        frame_json["columns"] = columns
+        blobs.append((f"{record.key}.json", json.dumps(frame_json, sort_keys=True, allow_nan=False).encode()))
+        row.update(columns)
+        return row, blobs
+
+    def _check_identity(self, record: FrameRecord, where: str) -> np.ndarray:
+        """Check the record's identity fields and arrays; return its pose as (4, 4) float64."""
+        for name in ("log", "scene_token", "scene_name", "token", "failure_reason", "status"):
+            if not isinstance(getattr(record, name), str):
+                raise InvalidFrameError(f"{where}: {name} must be a str")
+        if not record.log or not record.token:
+            raise InvalidFrameError(f"{where}: log and token must not be empty")
+        for name in ("log_id", "frame_index", "timestamp_us"):
+            if not _is_int(getattr(record, name)):
+                raise InvalidFrameError(f"{where}: {name} must be an int")
+        if record.log_id < 0 or record.frame_index < 0:
+            raise InvalidFrameError(f"{where}: log_id and frame_index must be >= 0")
+        pose = np.asarray(record.ego_to_global, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise InvalidFrameError(f"{where}: ego_to_global must be a finite (4, 4) matrix")
+        for name, array in record.arrays.items():
+            if name not in MEMBERS:
+                raise InvalidFrameError(f"{where}: unknown member {name!r} (known: {list(MEMBERS)})")
+            codecs.check_array(MEMBERS[name], array, self.grid, where)
+        if record.status == STATUS_FAILED:
+            if record.arrays or not record.failure_reason:
+                raise InvalidFrameError(f"{where}: a failed frame has no arrays and a failure_reason")
+        elif record.status == STATUS_OK:
+            if "semantics" not in record.arrays or record.failure_reason:
+                raise InvalidFrameError(f"{where}: an ok frame has semantics and no failure_reason")
+        else:
+            raise InvalidFrameError(f"{where}: status {record.status!r} is neither 'ok' nor 'failed'")
+        return pose
+
+    @staticmethod
+    def _check_columns(record: FrameRecord, where: str) -> dict:
+        """The record's extra columns as plain scalars, names checked."""
+        out = {}
+        for name in sorted(record.columns):
+            if not isinstance(name, str) or not _COLUMN_NAME.match(name) or name in RESERVED_COLUMNS:
+                raise InvalidFrameError(f"{where}: column name {name!r} is reserved or not [a-z][a-z0-9_]*")
+            out[name] = _scalar(name, record.columns[name], where)
+        return out
+
+    def _class_hist(self, semantics: np.ndarray, where: str) -> list[int]:
+        """Voxel count per label id; raises on ids outside the label map."""
+        hist = np.bincount(semantics.reshape(-1), minlength=256)
+        bad = np.setdiff1d(np.flatnonzero(hist), self._label_ids)
+        if bad.size:
+            raise InvalidFrameError(f"{where}: semantics holds ids {bad.tolist()} not in the label map")
+        return hist[: self._hist_len].tolist()
+
+    # ------------------------------------------------------------------ commit
+    def commit(self, rows: list[dict]) -> None:
+        """Merge `rows` into the manifest and publish dataset.json and manifest.parquet (atomic each).
+
+        Rows replace published rows of equal (log, token). dataset.json describes the build that
+        committed last (a rebuild with changed params rewrites the rows it rebuilds and the metadata).
+        Raises DatasetFormatError if an ok row's shard is missing.
+        """
+        meta_bytes = metadata_bytes(self.metadata)
+        meta_path = f"{self._path}/{METADATA_NAME}"
+        for shard in sorted({row["shard"] for row in rows if row.get("status") == STATUS_OK}):
+            if not self._fs.exists(shard_path(self._path, shard)):
+                raise DatasetFormatError(f"{shard_path(self._path, shard)}: shard of committed rows is missing")
+        try:
+            new = rows_to_table(rows, self._hist_len)
+        except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
+            raise InvalidFrameError(f"commit: rows do not fit the manifest columns: {exc}") from exc
+        existing = read_manifest(self.root) if self._fs.exists(f"{self._path}/{MANIFEST_NAME}") else None
+        table = merge(existing, new)
+        atomic_put(self._fs, meta_path, meta_bytes)
+        atomic_put(self._fs, f"{self._path}/{MANIFEST_NAME}", to_parquet_bytes(table))

@@ -1,0 +1,84 @@
+"""PyTorch view of a dataset: `OccupancyDataset` yields clips of consecutive frames of one scene.
+
+Item of a clip of T frames (T = clip_len):
+    <key> for key in `keys`: tensor [T, X, Y, Z] (flow [T, X, Y, Z, 3]), dtype as stored
+          (semantics uint8, masks bool, instance uint16, flow float16 m/s), each frame in its own ego frame;
+    poses: float64 [T, 4, 4], T_first_from_t = inv(ego_to_global[0]) @ ego_to_global[t], i.e. frame t's
+           ego frame expressed in the clip's first ego frame (poses[0] = identity);
+    ego_to_global: float64 [T, 4, 4]; timestamp_us, frame_index: int64 [T];
+    tokens: list of T lidar_pc tokens; scene_token, log_name: str.
+Clips and subsets are chosen from manifest columns only (see `nuplan_occ.storage.clips`).
+Works with DataLoader workers: each worker reopens its shard handles after the fork.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import torch
+
+from nuplan_occ.dataset import OccDataset
+from nuplan_occ.geometry import invert_transform
+from nuplan_occ.storage import clips
+from nuplan_occ.storage.errors import DatasetFormatError
+
+
+def _speeds(ds: OccDataset, name: str) -> np.ndarray:
+    if name not in ds.manifest.column_names:
+        raise DatasetFormatError(f"{ds.root}: manifest has no {name!r} column, needed for subsets")
+    return ds.manifest[name].cast(pa.float64()).fill_null(np.nan).to_numpy()
+
+
+class OccupancyDataset(torch.utils.data.Dataset):
+    """Clips of `clip_len` consecutive frames of one scene, starts `stride` frames apart within a run.
+
+    subset: None (all clips), "spatial" (ego_speed > theta_e) or "temporal" (ego_speed < theta_e and
+    max_agent_speed > theta_o), speeds in m/s from the manifest; a clip is in a subset iff all its
+    frames are. keys: members to load (each must exist for every frame, never faked).
+    """
+
+    def __init__(
+        self,
+        path: str,
+        clip_len: int = 1,
+        stride: int = 1,
+        subset: str | None = None,
+        keys: tuple[str, ...] = ("semantics",),
+        theta_e: float = 1.0,
+        theta_o: float = 2.0,
+    ):
+        self.ds = OccDataset(path)
+        self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
+        scenes = self.ds.manifest["scene_token"].combine_chunks().dictionary_encode().indices.to_numpy()
+        frames = self.ds.manifest["frame_index"].to_numpy()
+        self._order = clips.clip_order(scenes, frames)
+        starts = clips.clip_starts(scenes, frames, self._order, clip_len, stride)
+        if subset is not None:
+            flags = clips.subset_flags(subset, _speeds(self.ds, "ego_speed"), _speeds(self.ds, "max_agent_speed"),
+                                       theta_e, theta_o)
+            starts = starts[clips.clips_all_flagged(flags, self._order, starts, clip_len)]
+        self._starts = starts
+
+    def __len__(self) -> int:
+        return len(self._starts)
+
+    def frame_indices(self, i: int) -> np.ndarray:
+        """Indices into the underlying `OccDataset` of clip i's frames, in time order."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"clip {i} out of range for {len(self)} clips")
+        start = self._starts[i]
+        return self._order[start: start + self.clip_len]
+
+    def __getitem__(self, i: int) -> dict:
+        frames = self.ds.get_many(self.frame_indices(i).tolist(), self.keys)
+        ego_to_global = np.stack([f["ego_to_global"] for f in frames])
+        first_from_global = invert_transform(ego_to_global[0])
+        item = {key: torch.from_numpy(np.stack([f[key] for f in frames])) for key in self.keys}
+        item["poses"] = torch.from_numpy(np.einsum("ij,tjk->tik", first_from_global, ego_to_global))
+        item["ego_to_global"] = torch.from_numpy(ego_to_global)
+        item["timestamp_us"] = torch.tensor([f["timestamp_us"] for f in frames], dtype=torch.int64)
+        item["frame_index"] = torch.tensor([f["frame_index"] for f in frames], dtype=torch.int64)
+        item["tokens"] = [f["token"] for f in frames]
+        item["scene_token"] = frames[0]["scene_token"]
+        item["log_name"] = frames[0]["log_name"]
+        return item

@@ -1,0 +1,128 @@
+"""Bird's-eye-view ground semantics of a frame from the map's vector layers. Pure (shapely 2 + numpy).
+
+Layers are in the map's global frame (UTM metres). Each grid column (i, j) is represented by its cell
+centre in the ego frame (z = 0), moved to the global frame with T_global_from_ego, and classified with
+shapely's vectorized predicates (no per-cell Python loop):
+- ROAD: centre inside (or on the boundary of) the union of DRIVABLE_LAYERS. Crosswalks lie on the road
+  surface and are included.
+- ROAD_LINE: painted lines = `boundaries` linestrings and the outlines of `stop_polygons` (a thin stop
+  polygon's outline is its stop line; a deep one gives its front and back edges, one being the painted
+  line). A cell is a line cell if the line buffered to half the painted width covers its centre, OR the
+  line itself passes through the cell's square (so lines thinner than a cell never vanish).
+- OTHER_GROUND: every other column (walkways, verges, unmapped ground).
+Line beats road beats other ground.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import shapely
+
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.io.types import MapLayer
+from nuplan_occ.labels import OTHER_GROUND, ROAD, ROAD_LINE
+
+DRIVABLE_LAYERS: tuple[str, ...] = (
+    "road_segments", "intersections", "generic_drivable_areas", "carpark_areas", "lanes_polygons", "crosswalks",
+)
+LINE_LAYERS: tuple[str, ...] = ("boundaries",)
+STOP_LINE_LAYERS: tuple[str, ...] = ("stop_polygons",)
+
+
+class BevError(ValueError):
+    """Malformed map layer or pose given to the BEV rasterizer."""
+
+
+def cell_centers_global(T_global_from_ego: np.ndarray, grid: GridSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Y) global-frame x and y of the grid's column centres (ego z = 0)."""
+    T = np.asarray(T_global_from_ego, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise BevError(f"rasterize_bev: T_global_from_ego must be a finite 4x4 matrix, got shape {T.shape}")
+    nx, ny, _ = grid.shape
+    xs = grid.x_min + (np.arange(nx) + 0.5) * grid.voxel_size
+    ys = grid.y_min + (np.arange(ny) + 0.5) * grid.voxel_size
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    gx = T[0, 0] * X + T[0, 1] * Y + T[0, 3]
+    gy = T[1, 0] * X + T[1, 1] * Y + T[1, 3]
+    return gx, gy
+
+
+def _footprint(T_global_from_ego: np.ndarray, grid: GridSpec, margin_m: float) -> shapely.Geometry:
+    """The grid's square in the global frame, grown by margin_m (to pre-select map features)."""
+    corners = np.array([[grid.x_min, grid.y_min], [grid.x_max, grid.y_min],
+                        [grid.x_max, grid.y_max], [grid.x_min, grid.y_max]])
+    T = np.asarray(T_global_from_ego, dtype=np.float64)
+    g = corners @ T[:2, :2].T + T[:2, 3]
+    return shapely.buffer(shapely.Polygon(g), margin_m)
+
+
+def _geometries_near(layers: dict[str, MapLayer], names: tuple[str, ...], area: shapely.Geometry) -> np.ndarray:
+    """Valid, non-empty geometries of the named layers that meet `area`."""
+    found = []
+    for name in names:
+        if name not in layers:
+            continue
+        geoms = np.asarray(layers[name].geometries, dtype=object).reshape(-1)
+        if len(geoms) and not all(isinstance(g, shapely.Geometry) or g is None for g in geoms):
+            raise BevError(f"rasterize_bev: layer {name!r} holds non-shapely geometries")
+        geoms = geoms[~shapely.is_missing(geoms)]
+        geoms = geoms[~shapely.is_empty(geoms)]
+        found.append(geoms[shapely.intersects(geoms, area)])
+    return np.concatenate(found) if found else np.zeros(0, dtype=object)
+
+
+def _line_cells(lines: shapely.Geometry, gx: np.ndarray, gy: np.ndarray, T_global_from_ego: np.ndarray,
+                grid: GridSpec, width_m: float) -> np.ndarray:
+    """(X, Y) bool: cell centre within width/2 of the lines, or the lines cross the cell's square."""
+    s = grid.voxel_size
+    out = np.zeros(gx.shape, dtype=bool)
+    if width_m > 0:
+        painted = shapely.buffer(lines, width_m / 2.0)
+        shapely.prepare(painted)
+        out = shapely.intersects_xy(painted, gx, gy)
+    reach = shapely.buffer(lines, s * np.sqrt(0.5) + 1e-6)  # cells the line may cross
+    shapely.prepare(reach)
+    near = np.argwhere(shapely.intersects_xy(reach, gx, gy) & ~out)
+    if len(near):
+        T = np.asarray(T_global_from_ego, dtype=np.float64)
+        lo = np.array([grid.x_min, grid.y_min]) + near * s
+        square = np.array([[0, 0], [s, 0], [s, s], [0, s]])
+        corners = (lo[:, None, :] + square[None]) @ T[:2, :2].T + T[:2, 3]
+        cells = shapely.polygons(corners)
+        shapely.prepare(lines)
+        out[near[:, 0], near[:, 1]] = shapely.intersects(cells, lines)
+    return out
+
+
+def rasterize_bev(layers: dict[str, MapLayer], T_global_from_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID,
+                  line_width_m: float = 0.15, stop_line_width_m: float | None = None) -> np.ndarray:
+    """uint8 (X, Y) ground class per grid column: ROAD (12), OTHER_GROUND (13) or ROAD_LINE (14).
+
+    layers: map layer name -> MapLayer in the global (UTM) frame; absent layers are skipped.
+    T_global_from_ego: (4, 4) pose of the frame's ego (rear axle). Rows/cols follow the grid's x/y
+    axes of the EGO frame. line_width_m: painted width of boundaries; stop_line_width_m: of stop lines
+    (defaults to line_width_m).
+    """
+    gx, gy = cell_centers_global(T_global_from_ego, grid)
+    bev = np.full(gx.shape, OTHER_GROUND, dtype=np.uint8)
+    area = _footprint(T_global_from_ego, grid, margin_m=max(line_width_m, grid.voxel_size))
+    drivable = _geometries_near(layers, DRIVABLE_LAYERS, area)
+    if len(drivable):
+        union = shapely.union_all(shapely.make_valid(drivable))
+        shapely.prepare(union)
+        bev[shapely.intersects_xy(union, gx, gy)] = ROAD
+    line_sets = [
+        (_geometries_near(layers, LINE_LAYERS, area), line_width_m),
+        (shapely.boundary(_geometries_near(layers, STOP_LINE_LAYERS, area)),
+         line_width_m if stop_line_width_m is None else stop_line_width_m),
+    ]
+    for geoms, width in line_sets:
+        if len(geoms):
+            lines = shapely.union_all(geoms)
+            bev[_line_cells(lines, gx, gy, T_global_from_ego, grid, width)] = ROAD_LINE
+    return bev
+
+
+def drivable_columns(bev: np.ndarray) -> np.ndarray:
+    """(X, Y) bool: columns whose ground is drivable (road or a painted line)."""
+    return (bev == ROAD) | (bev == ROAD_LINE)

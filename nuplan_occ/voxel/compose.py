@@ -1,0 +1,131 @@
+"""Compose one frame's grids (semantics, instance ids, flow) from the background surface and placed objects.
+
+Everything is in the EGO frame of the frame (metres, m/s). Order of operations:
+1. background surface -> exact voxels (voxelize.mesh_voxel_indices); its ground height per column is
+   estimated (ground.estimate_ground_height);
+2. background voxels whose centre is inside a current box (grown by `box_margin_m`) are removed unless
+   they are in the ground layer (within ground_tolerance_m of the local ground): the object replaces
+   what the background mesh put in its box, but the road under a car is kept;
+3. each object's surface is posed by its box (box frame -> ego), voxelized exactly on the grid lattice
+   (also beyond the grid), filled inside if `fill_objects` (closed surfaces: voxels not 6-connected to
+   the outside; see voxelize.fill_enclosed), then clipped to its box grown by `box_margin_m` (voxel
+   centres) and to the grid. Objects are painted in list order (a later object wins a shared voxel) and
+   overwrite background;
+4. background left over is labeled by ground.label_background with the BEV (OTHER if bev is None);
+5. instance ids and flow (the object's ground-relative velocity in the ego frame) go to object voxels;
+   0 elsewhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from nuplan_occ.geometry import yaw_matrix
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.labels import OTHER
+from nuplan_occ.voxel.ground import estimate_ground_height, label_background
+from nuplan_occ.voxel.voxelize import (
+    VoxelizeError, box_voxel_indices, fill_enclosed, in_box, indices_to_grid, inside_grid, mesh_voxel_indices,
+)
+
+
+@dataclass
+class PlacedObject:
+    """One object at one frame. vertices (V, 3) metres in the object's BOX frame (origin at the box
+    centre, x along its heading, z up), faces (F, 3) int (empty: vertices are raw points); center (3,)
+    metres, yaw rad, size (3,) [length, width, height] metres and velocity (3,) m/s (relative to the
+    ground) of its box in the EGO frame; class_id: semantic id; instance_id: >0, stable per track."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    center: np.ndarray
+    yaw: float
+    size: np.ndarray
+    class_id: int
+    instance_id: int
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def vertices_ego(self) -> np.ndarray:
+        """(V, 3) vertices moved from the box frame into the ego frame."""
+        v = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        return v @ yaw_matrix(self.yaw).T + np.asarray(self.center, dtype=np.float64)
+
+
+@dataclass
+class FrameGrids:
+    """A frame's grids in the ego frame: semantics uint8 (X, Y, Z) label ids; instance uint16 (0 =
+    background/empty); flow float16 (X, Y, Z, 3) m/s; occupied_background bool (X, Y, Z): background
+    voxels kept (not overwritten by objects); ground_height float (X, Y) metres (NaN unknown)."""
+
+    semantics: np.ndarray
+    instance: np.ndarray
+    flow: np.ndarray
+    occupied_background: np.ndarray
+    ground_height: np.ndarray | None = None
+
+
+def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill: bool = True,
+                         box_margin_m: float | None = None) -> np.ndarray:
+    """(M, 3) grid indices of an object's voxels: its surface posed by its box, voxelized exactly,
+    filled when `fill`, clipped to its box grown by box_margin_m (default half a voxel) and to the grid."""
+    margin = grid.voxel_size / 2.0 if box_margin_m is None else box_margin_m
+    vertices = obj.vertices_ego()
+    if len(vertices) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    try:
+        idx = mesh_voxel_indices(vertices, obj.faces, grid, clip=False)
+    except VoxelizeError as err:
+        raise VoxelizeError(f"object instance {obj.instance_id}: {err}") from err
+    if fill:
+        idx = fill_enclosed(idx)
+    idx = inside_grid(idx, grid)
+    return idx[in_box(grid.index_to_center(idx), obj.center, obj.yaw, obj.size, margin)]
+
+
+def remove_background_in_boxes(background: np.ndarray, objects: list[PlacedObject], ground_height: np.ndarray,
+                               grid: GridSpec, ground_tolerance_m: float, box_margin_m: float) -> np.ndarray:
+    """Copy of the background bool grid without voxels inside current boxes above the ground layer."""
+    out = background.copy()
+    for obj in objects:
+        idx = box_voxel_indices(obj.center, obj.yaw, obj.size, grid, box_margin_m)
+        z = grid.z_min + (idx[:, 2] + 0.5) * grid.voxel_size
+        h = ground_height[idx[:, 0], idx[:, 1]]
+        with np.errstate(invalid="ignore"):
+            in_ground_layer = np.abs(z - h) <= ground_tolerance_m + 1e-9
+        idx = idx[~in_ground_layer]
+        out[idx[:, 0], idx[:, 1], idx[:, 2]] = False
+    return out
+
+
+def compose_frame(background_vertices: np.ndarray, background_faces: np.ndarray, objects: list[PlacedObject],
+                  bev: np.ndarray | None, grid: GridSpec = DEFAULT_GRID, fill_objects: bool = True,
+                  ground_tolerance_m: float = 0.3, box_margin_m: float | None = None) -> FrameGrids:
+    """The frame's grids (see module doc). background_vertices (V, 3) metres in the ego frame,
+    background_faces (F, 3) int (empty: vertices are points); bev uint8 (X, Y) or None."""
+    margin = grid.voxel_size / 2.0 if box_margin_m is None else box_margin_m
+    try:
+        background = indices_to_grid(mesh_voxel_indices(background_vertices, background_faces, grid), grid)
+    except VoxelizeError as err:
+        raise VoxelizeError(f"background surface: {err}") from err
+    ground_height = estimate_ground_height(background, grid)
+    background = remove_background_in_boxes(background, objects, ground_height, grid, ground_tolerance_m, margin)
+
+    instance = np.zeros(grid.shape, dtype=np.uint16)
+    flow = np.zeros((*grid.shape, 3), dtype=np.float16)
+    object_class = np.zeros(grid.shape, dtype=np.uint8)
+    for obj in objects:
+        idx = object_voxel_indices(obj, grid, fill_objects, margin)
+        i, j, k = idx[:, 0], idx[:, 1], idx[:, 2]
+        object_class[i, j, k] = obj.class_id
+        instance[i, j, k] = obj.instance_id
+        flow[i, j, k] = np.asarray(obj.velocity, dtype=np.float16).reshape(3)
+    is_object = object_class > 0
+    background &= ~is_object
+    if bev is None:
+        semantics = np.where(background, np.uint8(OTHER), np.uint8(0)).astype(np.uint8)
+    else:
+        semantics = label_background(background, bev, grid, ground_tolerance_m, ground_height)
+    semantics[is_object] = object_class[is_object]
+    return FrameGrids(semantics, instance, flow, background, ground_height)

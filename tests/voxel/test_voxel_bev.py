@@ -1,0 +1,48 @@
+"""BEV rasterization of map layers at a rotated pose lands in the right ego-frame cells."""
+
+import numpy as np
+import shapely
+
+from nuplan_occ.geometry import make_transform, yaw_matrix
+from nuplan_occ.grid import GridSpec
+from nuplan_occ.io.types import MapLayer
+from nuplan_occ.labels import OTHER_GROUND, ROAD, ROAD_LINE
+from nuplan_occ.voxel.bev import rasterize_bev
+
+GRID = GridSpec(x_min=-10, x_max=10, y_min=-10, y_max=10, z_min=-2, z_max=2, voxel_size=0.25)
+YAW = np.deg2rad(60.0)
+ORIGIN = np.array([500_000.0, 4_000_000.0, 10.0])  # a UTM-like global position
+T_GLOBAL_FROM_EGO = make_transform(yaw_matrix(YAW), ORIGIN)
+
+
+def to_global(xy_ego):
+    xy = np.asarray(xy_ego, dtype=float)
+    return xy @ yaw_matrix(YAW)[:2, :2].T + ORIGIN[:2]
+
+
+def cell(x, y):
+    return int(np.floor((x - GRID.x_min) / 0.25)), int(np.floor((y - GRID.y_min) / 0.25))
+
+
+def test_polygon_ahead_left_lands_at_positive_x_y_cells():
+    square = shapely.Polygon(to_global([[2.0, 3.0], [6.0, 3.0], [6.0, 5.0], [2.0, 5.0]]))
+    bev = rasterize_bev({"road_segments": MapLayer(np.array([square], dtype=object))}, T_GLOBAL_FROM_EGO, GRID)
+    road = np.argwhere(bev == ROAD)
+    assert len(road) == 16 * 8  # exactly the 4 m x 2 m square of cell centres
+    assert road.min(axis=0).tolist() == list(cell(2.1, 3.1)) and road.max(axis=0).tolist() == list(cell(5.9, 4.9))
+    assert np.all(bev[bev != ROAD] == OTHER_GROUND)
+
+
+def test_thin_line_and_stop_polygon_become_road_line():
+    line = shapely.LineString(to_global([[-8.0, -2.05], [8.0, -2.05]]))  # a painted line along ego x
+    layers = {
+        "road_segments": MapLayer(np.array([shapely.box(*ORIGIN[:2] - 50, *ORIGIN[:2] + 50)], dtype=object)),
+        "boundaries": MapLayer(np.array([line], dtype=object)),
+        "stop_polygons": MapLayer(np.array([shapely.Polygon(to_global([[3, 1], [3.3, 1], [3.3, 4], [3, 4]]))])),
+    }
+    bev = rasterize_bev(layers, T_GLOBAL_FROM_EGO, GRID, line_width_m=0.05)
+    rows = np.unique(np.argwhere(bev[cell(-7.9, 0)[0]:cell(7.9, 0)[0] + 1, :cell(0, 0)[1]] == ROAD_LINE)[:, 1])
+    assert rows.tolist() == [cell(0, -2.05)[1]]  # a 5 cm line still marks the one row of cells it crosses
+    assert np.all(bev[cell(-7.9, 0)[0]:cell(7.9, 0)[0] + 1, cell(0, -2.05)[1]] == ROAD_LINE)
+    assert bev[cell(3.1, 2.5)] == ROAD_LINE and bev[cell(3.2, 2.5)] == ROAD_LINE  # stop line outline
+    assert bev[cell(0.0, 0.0)] == ROAD

@@ -1,0 +1,64 @@
+"""A frame composed of a ground plane, a moving car box and a static cone."""
+
+import numpy as np
+import trimesh
+
+from nuplan_occ.grid import GridSpec
+from nuplan_occ.labels import OTHER, ROAD, TRAFFIC_CONE, VEHICLE
+from nuplan_occ.voxel.compose import PlacedObject, compose_frame
+
+
+GRID = GridSpec(x_min=-10, x_max=10, y_min=-10, y_max=10, z_min=-3, z_max=5, voxel_size=0.25)
+GROUND_Z = -1.4  # layer 6
+
+
+def box_mesh(lo, hi):
+    """Closed 12-triangle box surface between corners lo and hi (metres)."""
+    mesh = trimesh.creation.box(bounds=np.stack([lo, hi]))
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def frame(fill=True):
+    ground_v = np.array([[-12, -12, GROUND_Z], [12, -12, GROUND_Z], [12, 12, GROUND_Z], [-12, 12, GROUND_Z]])
+    # the background mesh also holds a stale blob inside the car's box (to be removed)
+    blob_v, blob_f = box_mesh(np.array([4.2, 1.2, -0.9]), np.array([4.8, 1.8, -0.2]))
+    vertices = np.concatenate([ground_v, blob_v])
+    faces = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]), blob_f + 4])
+    car_v, car_f = box_mesh(np.array([-2.1, -0.85, -0.7]), np.array([2.1, 0.85, 0.7]))  # box frame
+    car = PlacedObject(car_v, car_f, center=np.array([5.0, 1.0, -0.55]), yaw=np.pi / 2, size=np.array([4.4, 1.9, 1.6]),
+                       class_id=VEHICLE, instance_id=7, velocity=np.array([0.0, 3.0, 0.0]))
+    cone_pts = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.2]])
+    cone = PlacedObject(cone_pts, np.zeros((0, 3), int), center=np.array([-3.0, -3.0, -1.1]), yaw=0.0,
+                        size=np.array([0.4, 0.4, 0.6]), class_id=TRAFFIC_CONE, instance_id=9)
+    bev = np.full(GRID.shape[:2], ROAD, dtype=np.uint8)
+    return compose_frame(vertices, faces, [car, cone], bev, GRID, fill_objects=fill), car
+
+
+def test_moving_car_has_its_class_instance_and_flow():
+    grids, car = frame()
+    in_car = grids.instance == 7
+    # the filled car: 4.2 x 1.7 x 1.4 m rotated by 90 deg -> x in [4.15, 5.85], y in [-1.1, 3.1],
+    # z in [-1.25, 0.15] -> voxel index blocks 56..63, 35..52, 7..12 (z = -1.25 is a boundary: layer 7)
+    expected = np.zeros(GRID.shape, bool)
+    expected[56:64, 35:53, 7:13] = True
+    assert np.array_equal(in_car, expected)
+    assert np.all(grids.semantics[in_car] == VEHICLE)
+    assert np.allclose(grids.flow[in_car].astype(float), [0.0, 3.0, 0.0])
+    assert np.all(grids.flow[~in_car] == 0) and np.all(grids.instance[grids.semantics == ROAD] == 0)
+    assert grids.semantics.dtype == np.uint8 and grids.instance.dtype == np.uint16 and grids.flow.dtype == np.float16
+
+
+def test_background_in_box_removed_but_ground_kept():
+    grids, _ = frame()
+    assert np.all(grids.semantics[:, :, 6][grids.occupied_background[:, :, 6]] == ROAD)
+    assert grids.occupied_background[:, :, 6].sum() + (grids.instance[:, :, 6] > 0).sum() == 80 * 80
+    assert not np.any(grids.semantics == OTHER)  # the stale blob inside the car's box is gone
+    assert not np.any(grids.occupied_background & (grids.instance > 0))
+
+
+def test_points_object_and_no_fill():
+    grids, _ = frame(fill=False)
+    assert (grids.instance == 9).sum() == 2 and np.all(grids.semantics[grids.instance == 9] == TRAFFIC_CONE)
+    shell = (grids.instance == 7).sum()
+    filled, _ = frame(fill=True)
+    assert (filled.instance == 7).sum() > shell
