@@ -1,6 +1,6 @@
 """Stage 2, filter (FBSA): statistical outlier removal on each sweep's background points.
 
-Inputs: `splits`. Outputs: `background` (list of (n, 3) ego-frame points per sweep, None for failed
+Inputs: `scene`, `splits`. Outputs: `background` (list of (n, 3) ego-frame points per sweep, None for failed
 sweeps) and `outliers_removed` (count per sweep).
 """
 
@@ -14,9 +14,12 @@ from nuplan_occ.pipeline.stage import Stage
 
 @dataclass(frozen=True)
 class FilterParams:
-    """method: "knn" (Open3D statistical outlier removal) or "global" (the paper's ||p - mu|| < k sigma)."""
+    """method: "range" (neighbour distance divided by range to the sensor; the default, chosen by
+    measurement: 80 % of injected outliers caught for 0.5 % real points lost on single sweeps, against
+    60 % / 1.9 % for "knn" and 30 % / 1.1 % for "global"), "knn" (Open3D statistical outlier removal) or
+    "global" (the paper's ||p - mu|| < k sigma)."""
 
-    method: str = "knn"
+    method: str = "range"
     nb_neighbors: int = 20
     std_ratio: float = 2.0
     k_sigma: float = 3.0
@@ -31,11 +34,12 @@ def run(inputs: dict, params: FilterParams) -> dict:
             continue
         points = split.background.xyz
         keep = remove_statistical_outliers(points, method=params.method, nb_neighbors=params.nb_neighbors,
-                                           std_ratio=params.std_ratio, k_sigma=params.k_sigma)
+                                           std_ratio=params.std_ratio, k_sigma=params.k_sigma,
+                                           origin=inputs["scene"].sensor_origin_ego)
         background.append(points[keep])
         removed.append(int((~keep).sum()))
     return {"background": background, "outliers_removed": removed}
 
 
-STAGE = Stage("filter", inputs=("splits",), outputs=("background", "outliers_removed"),
+STAGE = Stage("filter", inputs=("scene", "splits"), outputs=("background", "outliers_removed"),
               params_type=FilterParams, run=run, code=("nuplan_occ.fbsa.outliers",), doc=__doc__ or "")

@@ -1,0 +1,140 @@
+"""Multi-frame aggregation: background points in one scene frame, object points in their own box frames
+(paper: "Background/Foreground Point Cloud Aggregation"; P_local = R_obj^T (P_world - c_obj)).
+
+Frames: "ego" per frame (inputs), "global" (poses are T_global_from_ego), "scene" (T_global_from_scene, by
+default the first frame's ego pose), "box" (origin at the box centre, x along the heading). Units: metres.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.split import FrameSplit
+from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.io.types import Boxes
+
+RIGID_CATEGORIES = ("vehicle", "bicycle", "traffic_cone", "barrier", "czone_sign", "generic_object")
+
+
+@dataclass
+class BackgroundAggregate:
+    """points (M, 3) and sensor_origins (M, 3) in the SCENE frame; frame_ids (M,) int32 index of the source
+    frame; T_global_from_scene (4, 4)."""
+
+    points: np.ndarray
+    sensor_origins: np.ndarray
+    frame_ids: np.ndarray
+    T_global_from_scene: np.ndarray
+
+
+def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Sorted indices of the first point (in input order) of every occupied voxel of size voxel_m (m)."""
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def aggregate_background(
+    clouds_ego: list[np.ndarray],
+    sensor_origins_ego: np.ndarray,
+    poses: np.ndarray,
+    T_global_from_scene: np.ndarray | None = None,
+    voxel_downsample_m: float | None = None,
+) -> BackgroundAggregate:
+    """Background points of all frames in the scene frame.
+
+    clouds_ego: F arrays (n_i, 3), frame i's background in its ego frame; sensor_origins_ego (F, 3): frame i's
+    sensor origin in its ego frame; poses (F, 4, 4): T_global_from_ego (refined). voxel_downsample_m: if set, keep
+    only the first point (earliest frame) of every voxel of that size, with its own sensor origin and frame id.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    origins = np.asarray(sensor_origins_ego, dtype=np.float64)
+    F = len(clouds_ego)
+    if poses.shape != (F, 4, 4) or origins.shape != (F, 3):
+        raise FbsaInputError(
+            f"aggregate_background: {F} clouds need poses (F, 4, 4) and sensor_origins_ego (F, 3), got "
+            f"{poses.shape} and {origins.shape}"
+        )
+    T_gs = poses[0] if T_global_from_scene is None and F else np.asarray(
+        np.eye(4) if T_global_from_scene is None else T_global_from_scene, dtype=np.float64)
+    scene_from_global = invert_transform(T_gs)
+    points, sensors, ids = [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros(0, np.int32)]
+    for i, cloud in enumerate(clouds_ego):
+        T = scene_from_global @ poses[i]
+        pts = transform_points(T, cloud)
+        points.append(pts)
+        sensors.append(np.repeat(transform_points(T, origins[i][None]), len(pts), axis=0))
+        ids.append(np.full(len(pts), i, dtype=np.int32))
+    agg = BackgroundAggregate(np.vstack(points), np.vstack(sensors), np.concatenate(ids), T_gs)
+    if voxel_downsample_m:
+        keep = voxel_first_indices(agg.points, voxel_downsample_m)
+        agg = BackgroundAggregate(agg.points[keep], agg.sensor_origins[keep], agg.frame_ids[keep], T_gs)
+    return agg
+
+
+@dataclass
+class ObjectAggregate:
+    """All points of one track in its BOX frame.
+
+    size (3,) [length, width, height] m: median over the frames; points / sensor_origins (n, 3) box frame;
+    frame_ids (n,) int32 index of the source frame; rigid: whether the category keeps its shape over time."""
+
+    track_token: str
+    category: str
+    size: np.ndarray
+    points: np.ndarray
+    sensor_origins: np.ndarray
+    frame_ids: np.ndarray
+    rigid: bool
+
+    def points_for_frame(self, frame_id: int, window: int) -> tuple[np.ndarray, np.ndarray]:
+        """(points, sensor_origins) in the box frame to rebuild the object at frame_id: every point of a rigid
+        object; only the points of frames within +-window of frame_id for a non-rigid one."""
+        if self.rigid:
+            return self.points, self.sensor_origins
+        keep = np.abs(self.frame_ids.astype(np.int64) - int(frame_id)) <= window
+        return self.points[keep], self.sensor_origins[keep]
+
+
+def aggregate_objects(
+    splits: list[FrameSplit],
+    boxes_per_frame: list[Boxes],
+    rigid_categories: tuple[str, ...] = RIGID_CATEGORIES,
+) -> dict[str, ObjectAggregate]:
+    """Per-track aggregation of the foreground points of all frames (already in each track's box frame).
+
+    splits[i] and boxes_per_frame[i] belong to frame i. A track's category is its most frequent box category and
+    its size the per-axis median of its box sizes; tracks with boxes but no points get empty point arrays."""
+    if len(splits) != len(boxes_per_frame):
+        raise FbsaInputError(f"aggregate_objects: {len(splits)} splits but {len(boxes_per_frame)} box sets")
+    categories: dict[str, Counter] = {}
+    sizes: dict[str, list[np.ndarray]] = {}
+    for boxes in boxes_per_frame:
+        for token, category, size in zip(boxes.track_tokens, boxes.categories, boxes.sizes):
+            categories.setdefault(token, Counter())[category] += 1
+            sizes.setdefault(token, []).append(np.asarray(size, dtype=np.float64))
+    points: dict[str, list[np.ndarray]] = {t: [] for t in sizes}
+    origins: dict[str, list[np.ndarray]] = {t: [] for t in sizes}
+    ids: dict[str, list[np.ndarray]] = {t: [] for t in sizes}
+    for i, split in enumerate(splits):
+        for token, pts in split.foreground.items():
+            if token not in points:
+                raise FbsaInputError(f"aggregate_objects: frame {i} has points of track {token} but no box of it")
+            points[token].append(pts)
+            origins[token].append(split.foreground_origins[token])
+            ids[token].append(np.full(len(pts), i, dtype=np.int32))
+    out = {}
+    for token in sizes:
+        category = categories[token].most_common(1)[0][0]
+        out[token] = ObjectAggregate(
+            token, category, np.median(np.stack(sizes[token]), axis=0),
+            np.vstack(points[token]) if points[token] else np.zeros((0, 3)),
+            np.vstack(origins[token]) if origins[token] else np.zeros((0, 3)),
+            np.concatenate(ids[token]) if ids[token] else np.zeros(0, np.int32),
+            category in rigid_categories,
+        )
+    return out
