@@ -72,7 +72,10 @@ class ShardReader:
         self.close()
 
     def __del__(self) -> None:
-        self.close()
+        try:
+            self.close()
+        except TypeError:  # interpreter shutdown: module globals (os) are already gone
+            pass
 
     def close(self) -> None:
         """Close the descriptors this process opened."""
