@@ -1,0 +1,103 @@
+"""Sparse voxel hierarchy over the input points (reference A.2 / A.11.2).
+
+Coordinates are integer voxel indices in level-0 units relative to a lattice anchor (see
+`nksr_lite`); level l has voxels of 2**l level-0 voxels. Level 0 holds the voxels that contain
+points, every coarser level the parents of level 0 dilated by one voxel (NKSR-lite dilation
+(0, 1, 1, ...)): the coarse basis functions reach about one coarse voxel beyond the data and fill
+holes there. Each level keeps a dense int32 index volume (voxel -> global coefficient id or -1)
+over its padded bounding box, so lookups are a single gather.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from nuplan_occ.recon.basis import OFFSETS
+from nuplan_occ.recon.params import ReconError
+
+MAX_INDEX_VOLUME = 1 << 28
+"""Largest dense index volume (entries) of one level; larger inputs must be chunked or cropped."""
+
+
+@dataclass
+class LevelGrid:
+    """One level: voxel size `size` (level-0 units), voxel coordinates `coords` (M_l, 3) int64,
+    their global coefficient ids starting at `offset`, and the dense index volume whose entry
+    [0, 0, 0] is voxel `lo`."""
+
+    size: int
+    coords: torch.Tensor
+    offset: int
+    lo: torch.Tensor
+    volume: torch.Tensor
+
+    def ids(self, ijk: torch.Tensor) -> torch.Tensor:
+        """Global coefficient ids of voxel coordinates ijk (..., 3) int64; -1 where absent."""
+        rel = ijk - self.lo
+        shape = torch.tensor(self.volume.shape)
+        inside = ((rel >= 0) & (rel < shape)).all(dim=-1)
+        rel = torch.where(inside.unsqueeze(-1), rel, torch.zeros_like(rel))
+        found = self.volume[rel[..., 0], rel[..., 1], rel[..., 2]].to(torch.int64)
+        return torch.where(inside, found, torch.full_like(found, -1))
+
+
+def unique_voxels(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Unique rows of int64 voxel coordinates (K, 3) via 1-D linear keys (faster than
+    torch.unique(dim=0)). Returns (unique (M, 3) in lexicographic order, inverse (K,), counts (M,))."""
+    lo = coords.min(dim=0).values
+    rel = coords - lo
+    ext = rel.max(dim=0).values + 1
+    keys = (rel[:, 0] * ext[1] + rel[:, 1]) * ext[2] + rel[:, 2]
+    uniq, inverse, counts = torch.unique(keys, return_inverse=True, return_counts=True)
+    z = uniq % ext[2]
+    y = torch.div(uniq, ext[2], rounding_mode="floor") % ext[1]
+    x = torch.div(uniq, ext[2] * ext[1], rounding_mode="floor")
+    return torch.stack([x, y, z], dim=1) + lo, inverse, counts
+
+
+def dilate(coords: torch.Tensor, times: int = 1) -> torch.Tensor:
+    """Unique voxel coordinates (M', 3) of `coords` (M, 3) grown by `times` 26-neighbourhoods."""
+    for _ in range(times):
+        coords = unique_voxels((coords.unsqueeze(1) + OFFSETS).reshape(-1, 3))[0]
+    return coords
+
+
+def _level(coords: torch.Tensor, size: int, offset: int) -> LevelGrid:
+    lo = coords.min(dim=0).values - 2
+    extent = coords.max(dim=0).values + 3 - lo
+    if int(extent.prod()) > MAX_INDEX_VOLUME:
+        raise ReconError(
+            f"voxel hierarchy: level of voxel size {size} spans {extent.tolist()} voxels; "
+            "crop the input or enable chunking (ReconParams.chunk_size)"
+        )
+    volume = torch.full(tuple(extent.tolist()), -1, dtype=torch.int32)
+    rel = coords - lo
+    volume[rel[:, 0], rel[:, 1], rel[:, 2]] = torch.arange(offset, offset + len(coords), dtype=torch.int32)
+    return LevelGrid(size=size, coords=coords, offset=offset, lo=lo, volume=volume)
+
+
+@dataclass
+class VoxelHierarchy:
+    """Levels 0..L-1 of the sparse hierarchy; coefficient ids are global over all levels."""
+
+    levels: list[LevelGrid]
+
+    @property
+    def num_unknowns(self) -> int:
+        """Total number of basis functions (voxels over all levels)."""
+        last = self.levels[-1]
+        return last.offset + len(last.coords)
+
+    @classmethod
+    def build(cls, occupied: torch.Tensor, num_levels: int) -> "VoxelHierarchy":
+        """Hierarchy over the occupied level-0 voxels `occupied` (M0, 3) int64 (unique)."""
+        levels = [_level(occupied, 1, 0)]
+        for level in range(1, num_levels):
+            size = 1 << level
+            parents = unique_voxels(torch.div(occupied, size, rounding_mode="floor"))[0]
+            coords = dilate(parents)
+            prev = levels[-1]
+            levels.append(_level(coords, size, prev.offset + len(prev.coords)))
+        return cls(levels=levels)

@@ -1,0 +1,71 @@
+"""The B-spline basis, the voxel hierarchy and the PCG solver against known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from nuplan_occ.recon.basis import gram_weights, stencil
+from nuplan_occ.recon.hierarchy import VoxelHierarchy, dilate, unique_voxels
+from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
+
+
+def test_basis_is_partition_of_unity_and_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    u = torch.from_numpy(rng.uniform(-10, 10, (500, 3)))
+    for size in (1, 2, 4):
+        ijk, values, grads = stencil(u, size, gradient=True)
+        assert torch.allclose(values.sum(dim=1), torch.ones(len(u), dtype=u.dtype), atol=1e-12)
+        assert torch.allclose(grads.sum(dim=1), torch.zeros(len(u), 3, dtype=u.dtype), atol=1e-12)
+        eps = 1e-6
+        for axis in range(3):
+            shifted = u.clone()
+            shifted[:, axis] += eps
+            ijk2, values2, _ = stencil(shifted, size, gradient=False)
+            same = (ijk2 == ijk).all(dim=2).all(dim=1)  # skip queries that crossed a voxel face
+            numeric = (values2 - values)[same] / eps
+            assert torch.allclose(numeric, grads[same][..., axis], atol=1e-4)
+
+
+def test_gram_weights_are_the_spline_at_integer_offsets():
+    w = gram_weights(torch.float64)
+    assert w.shape == (27,)
+    assert np.isclose(float(w[13]), 0.75**3)  # centre
+    assert np.isclose(float(w[0]), 0.125**3)  # corner neighbour
+    assert np.isclose(float(w.sum()), 1.0)
+
+
+def test_unique_voxels_and_dilate():
+    coords = torch.tensor([[3, -1, 2], [0, 0, 0], [3, -1, 2], [-5, 7, 1]])
+    uniq, inverse, counts = unique_voxels(coords)
+    assert uniq.tolist() == [[-5, 7, 1], [0, 0, 0], [3, -1, 2]]
+    assert torch.equal(uniq[inverse], coords)
+    assert counts.tolist() == [1, 1, 2]
+    assert len(dilate(torch.tensor([[0, 0, 0]]), 2)) == 125
+
+
+def test_hierarchy_levels_and_lookup():
+    occupied = torch.tensor([[0, 0, 0], [1, 0, 0], [7, 3, 2]])
+    hierarchy = VoxelHierarchy.build(occupied, 3)
+    level0, level1, level2 = hierarchy.levels
+    assert len(level0.coords) == 3
+    assert level1.size == 2 and level2.size == 4
+    assert hierarchy.num_unknowns == 3 + len(level1.coords) + len(level2.coords)
+    # every occupied voxel's parent and its 26 neighbours exist at level 1
+    parents = torch.div(occupied, 2, rounding_mode="floor")
+    assert (level1.ids(parents.unsqueeze(1) + torch.tensor([[-1, -1, -1], [1, 1, 1]])) >= 0).all()
+    assert level0.ids(torch.tensor([[7, 3, 2], [2, 0, 0], [100, 0, 0]])).tolist() == [2, -1, -1]
+
+
+def test_jacobi_pcg_matches_direct_solve():
+    rng = np.random.default_rng(1)
+    n = 300
+    a = sp.random(n, n, density=0.02, random_state=2)
+    matrix = (a @ a.T + sp.diags(rng.uniform(1, 5, n))).tocsr()
+    rhs = rng.normal(size=n)
+    expected = np.linalg.solve(matrix.toarray(), rhs)
+    result = jacobi_pcg(to_torch_csr(matrix, torch.float64), torch.from_numpy(matrix.diagonal()),
+                        torch.from_numpy(rhs), 1e-10, 1000)
+    assert result.relative_residual <= 1e-10
+    assert np.allclose(result.x.numpy(), expected, atol=1e-8)
