@@ -85,7 +85,7 @@ class _FramePass:
 def _params(preset: Preset, options: SynthOptions, logs: int, seconds: float, seed: int, truth_rate_hz: float) -> dict:
     return {"generator": "nuplan_occ.synth", "preset": preset.name, "logs": logs, "seconds": seconds, "seed": seed,
             "truth_rate_hz": truth_rate_hz, "options": asdict(options),
-            "truth_frame": "ego frame of the TRUE pose (rear axle on the ground); ego_to_global is the TRUE pose",
+            "truth_frame": "ego frame of the TRUE pose (rear axle above the ground by options.axle_height_m); ego_to_global is the TRUE pose",
             "truth_rules": "surfaces exact triangle/voxel overlap; box objects solid; priority objects > other > "
                            "road_line > road > other_ground; mask_lidar = voxels traversed by returned rays"}
 

@@ -35,6 +35,10 @@ class SynthOptions:
     ego_pose_hz: float = 100.0
     ground_z: float = 2.5
     """Height of the world's ground in the global frame (m); non-zero so that a dropped z shows."""
+    axle_height_m: float = 0.36
+    """Height of the rear axle (the ego origin) above the ground: about a Pacifica wheel's radius. It also
+    keeps the ground off the grid's voxel boundaries (ego z = -0.36 lies inside layer 10), so truth and
+    builds are not decided by which side of a boundary a surface falls on."""
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,8 @@ of one nuPlan location.
 
 Frames: "local" = global minus `World.origin` (a pure translation; local z = 0 is the ground level);
 "global" = UTM metres of the location's EPSG. Times: seconds from the log start (t = 0 at start_us).
-The TRUE ego pose is upright (yaw only) with its origin (rear axle) on the ground under it.
+The TRUE ego pose is upright (yaw only) with its origin (rear axle) `options.axle_height_m` above the
+ground under it.
 """
 
 from __future__ import annotations
@@ -83,7 +84,7 @@ class World:
         T = np.tile(np.eye(4), (len(t), 1, 1))
         T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -sn, sn, c
         T[:, :2, 3] = xy
-        T[:, 2, 3] = ground
+        T[:, 2, 3] = ground + self.options.axle_height_m
         zeros = np.zeros_like(v)
         return {
             "T_local_from_ego": T,

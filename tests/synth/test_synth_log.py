@@ -73,10 +73,10 @@ def test_log_reads_back(out):
         gap = np.linalg.norm(T_log[:3, 3] - T_true[:3, 3])
         assert 1e-4 < gap < 1.0
         assert frame.timestamp_us == world.start_us + 4 * FRAME_US
-        # points go to the ego frame with the stored extrinsic; on the ground they sit at z ~ 0
+        # points go to the ego frame with the stored extrinsic; on the ground they sit at z ~ -axle height
         ego = points_to_ego(cloud, log)
         near = np.linalg.norm(ego.xyz[:, :2], axis=1) < 15
-        assert abs(np.median(ego.xyz[near, 2])) < 0.2
+        assert abs(np.median(ego.xyz[near, 2]) + SynthOptions().axle_height_m) < 0.2
         boxes = log.boxes(frame)
         boxed = {a.instance: a for a in world.agents if a.boxed}
         assert 0 < len(boxes) <= len(boxed)

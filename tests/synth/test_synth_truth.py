@@ -66,9 +66,12 @@ def test_box_object_fills_exactly_its_box(world, frame):
 
 def test_ground_is_one_layer_at_ground_height(frame):
     _, _, truth = frame
-    ground = np.isin(truth["semantics"], [ROAD, ROAD_LINE, OTHER_GROUND])
-    # the TRUE ego origin is on the ground, z = 0 is the bottom plane of layer 12; walkways (+0.15) stay in it
-    assert set(np.unique(np.nonzero(ground)[2]).tolist()) == {12}
+    # the TRUE ego origin is 0.36 m above the ground: road at ego z = -0.36 (layer 10, [-0.5, -0.25));
+    # walkways 0.15 m higher at z = -0.21 (layer 11)
+    road = np.isin(truth["semantics"], [ROAD, ROAD_LINE])
+    assert set(np.unique(np.nonzero(road)[2]).tolist()) == {10}
+    walkway = truth["semantics"] == OTHER_GROUND
+    assert set(np.unique(np.nonzero(walkway)[2]).tolist()) <= {10, 11}
     # every column is covered by ground or something above it (the world is larger than the grid)
     assert np.all(truth["semantics"].any(axis=2))
 
@@ -121,7 +124,7 @@ def test_ego_route_stays_on_the_road_and_turns(seed):
     half_width = 2.297 / 2
     assert shapely.distance(w.net.walkways, shapely.points(driven)).min() > half_width + 0.3
     state = w.ego_state(np.arange(0.0, 10.0, 0.05))
-    assert np.all(state["T_local_from_ego"][:, 2, 3] == 0.0)  # TRUE rear axle on the road surface
+    assert np.allclose(state["T_local_from_ego"][:, 2, 3], SynthOptions().axle_height_m)  # TRUE rear axle above the road
     speed = state["velocity"][:, 0]
     assert speed.min() < 0.05 and speed.max() > 4.0  # stops at the intersection, then moves on
     yaw = np.unwrap(np.arctan2(state["T_local_from_ego"][:, 1, 0], state["T_local_from_ego"][:, 0, 0]))
