@@ -127,3 +127,13 @@ def bench(
     for name, r in results.items():
         console.print(f"{name}: ratio {r['compression_ratio']:g}, IoU {r['iou']:.3f}, mIoU {r['miou']:.3f}, "
                       f"loss {r['losses'][0]:.3f} -> {r['losses'][-1]:.3f}")
+
+
+def _register_part2() -> None:
+    """Camera maps and LiDAR generation commands (occgen part 2: render-maps, lidar, lidar-train, eval-lidar)."""
+    from occgen.cli_part2 import register
+
+    register(app)
+
+
+_register_part2()
