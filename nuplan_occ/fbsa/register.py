@@ -3,7 +3,8 @@
 Procedure (all in the "local" frame = the ego frame of logged frame 0, to keep coordinates small):
 1. Frame k's prior is the refined pose of frame k-1 times the LOGGED relative motion k-1 -> k.
 2. Its voxel-downsampled background is registered, coarse to fine, to a local map made of the last
-   `window` trusted sweeps (point-to-plane ICP, Open3D, Tukey kernel, normals estimated on the map). This
+   `window` trusted sweeps (point-to-plane Gauss-Newton ICP in numpy with a Tukey kernel, scipy kd-tree
+   correspondences, Open3D map normals; deterministic, unlike Open3D's parallel ICP). This
    refines all six degrees of freedom, z, roll and pitch included, so that the ground does not layer.
 3. The result is gated: too few points, empty map, low fitness, high RMSE, degenerate geometry (a direction
    without point-to-plane constraint, e.g. a featureless plane) or an implausibly large correction with respect
@@ -24,12 +25,12 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points
 
-reg = o3d.pipelines.registration
 
 ANCHORS = ("fit", "first")
 
@@ -125,24 +126,54 @@ class _LocalMap:
         return cloud
 
 
-def _register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
+def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: np.ndarray, tree: cKDTree, init: np.ndarray,
+                        max_distance: float, tukey_k: float, max_iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton point-to-plane ICP with a Tukey kernel, in numpy (deterministic: Open3D's ICP is not
+    bit-reproducible between runs, and the build must give identical bytes).
+
+    source (n, 3) points in their own frame; target (m, 3) / normals (m, 3) in the map frame, `tree` over
+    target. Returns (T_map_from_source, source indices, target indices) of the last correspondences."""
+    T = init.copy()
+    for _ in range(max_iterations):
+        moved = source @ T[:3, :3].T + T[:3, 3]
+        distance, nearest = tree.query(moved, distance_upper_bound=max_distance)
+        src = np.flatnonzero(np.isfinite(distance))
+        if len(src) < 6:
+            break
+        p, q, n = moved[src], target[nearest[src]], normals[nearest[src]]
+        residual = np.einsum("ij,ij->i", p - q, n)
+        weight = np.where(np.abs(residual) < tukey_k, (1.0 - (residual / tukey_k) ** 2) ** 2, 0.0)
+        J = np.hstack([np.cross(p, n), n])
+        A = J.T @ (weight[:, None] * J)
+        step = np.linalg.lstsq(A, -J.T @ (weight * residual), rcond=None)[0]
+        update = np.eye(4)
+        update[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
+        update[:3, 3] = step[3:]
+        T = update @ T
+        if np.linalg.norm(step) < 1e-7:
+            break
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    distance, nearest = tree.query(moved, distance_upper_bound=max_distance)
+    src = np.flatnonzero(np.isfinite(distance))
+    return T, src, nearest[src]
+
+
+def _register(source: np.ndarray, target: o3d.geometry.PointCloud, init: np.ndarray,
               params: RegistrationParams) -> tuple[np.ndarray, float, float, float]:
-    """Coarse-to-fine point-to-plane ICP; returns (T_local_from_ego, fitness, point-to-plane RMSE of the last
+    """Coarse-to-fine point-to-plane ICP of source points (n, 3, ego frame) against the local map; returns
+    (T_local_from_ego, fitness = share of source points with a correspondence, point-to-plane RMSE of the last
     stage's correspondences in m, conditioning)."""
+    points, normals = np.asarray(target.points), np.asarray(target.normals)
+    tree = cKDTree(points)
     T = init
-    result = None
     for dist in params.max_correspondence_m:
-        estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=params.tukey_ratio * dist))
-        criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7,
-                                              max_iteration=params.max_iterations)
-        result = reg.registration_icp(source, target, dist, T, estimation, criteria)
-        T = np.asarray(result.transformation)
-    pairs = np.asarray(result.correspondence_set, dtype=np.int64).reshape(-1, 2)
-    moved = transform_points(T, np.asarray(source.points)[pairs[:, 0]])
-    normals = np.asarray(target.normals)[pairs[:, 1]]
-    residual = np.sum(normals * (moved - np.asarray(target.points)[pairs[:, 1]]), axis=1)
+        T, src, tgt = _point_to_plane_icp(source, points, normals, tree, T, dist, params.tukey_ratio * dist,
+                                          params.max_iterations)
+    moved = transform_points(T, source[src])
+    residual = np.sum(normals[tgt] * (moved - points[tgt]), axis=1)
     rmse = float(np.sqrt(np.mean(residual**2))) if len(residual) else float("nan")
-    return T, float(result.fitness), rmse, plane_conditioning(moved, normals, T[:3, 3])
+    fitness = len(src) / max(len(source), 1)
+    return T, fitness, rmse, plane_conditioning(moved, normals[tgt], T[:3, 3])
 
 
 def _gate(prior: np.ndarray, T: np.ndarray, fitness: float, rmse: float, conditioning: float,
@@ -228,7 +259,7 @@ def refine_poses(clouds_ego: list[np.ndarray], logged_poses: np.ndarray,
         elif not local_map.sweeps:
             reasons[k] = "empty local map"
         else:
-            T, fitness[k], rmse[k], cond = _register(source, local_map.target(), prior, params)
+            T, fitness[k], rmse[k], cond = _register(np.asarray(source.points), local_map.target(), prior, params)
             reasons[k] = _gate(prior, T, fitness[k], rmse[k], cond, params)
             accepted[k] = reasons[k] == ""
             if accepted[k]:

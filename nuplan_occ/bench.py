@@ -1,0 +1,316 @@
+"""`make bench`: synthesize a fixed `small` log, build it (local and Ray, side by side), and measure the
+build against the synthetic truth. Writes bench/report.json and bench/report.md.
+
+Sections: build (wall time per stage, frames/s, per-frame cost per core, peak RSS, bytes per frame,
+local vs Ray), quality (IoU / mIoU / per-class IoU in the truth's LiDAR mask, trails, ground holes,
+side by side with the paper's method on the same surfaces), FBSA (pose error before and after
+registration against the true poses), reconstruction (torch solver vs Poisson vs raw points against
+a known surface), per-frame voxel costs, decode throughput, and optionally occgen training figures.
+Figures are medians over frames; every comparison is measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import platform
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nuplan_occ import __version__
+from nuplan_occ.dataset import open_dataset
+from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.grid import DEFAULT_GRID
+from nuplan_occ.io.data_root import resolve_logs
+from nuplan_occ.labels import LABELS, ROAD, ROAD_LINE
+from nuplan_occ.pipeline.build import default_work_root, plan_tasks, run_build
+from nuplan_occ.pipeline.params import default_params
+from nuplan_occ.pipeline.runner import run_stages
+from nuplan_occ.voxel.baseline import paper_column_stamp, paper_voxelize_vertices
+from nuplan_occ.voxel.bev import rasterize_bev
+from nuplan_occ.voxel.metrics import ground_hole_rate, occupancy_metrics, trail_count
+
+BENCH_SEED = 0
+
+
+def published_digest(root: Path) -> str:
+    """sha256 over the published files (shards, manifest, metadata) of a dataset root."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file() and "work" not in p.relative_to(root).parts):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def bench_build(data_root: Path, out_dir: Path, workers: int) -> dict[str, Any]:
+    """Local and Ray builds of the same log from scratch; timings and identical-bytes check."""
+    from stages import PIPELINE
+
+    rows = {}
+    for executor in ("local", "ray"):
+        out = out_dir / f"build_{executor}"
+        shutil.rmtree(out, ignore_errors=True)
+        summary = run_build(data_root, str(out), default_params(PIPELINE), workers=workers, executor=executor)
+        rows[executor] = {**summary.to_dict(), "frames_per_s": summary.frames_built / summary.wall_seconds,
+                          "digest": published_digest(out)}
+    local = rows["local"]
+    cpu_seconds = sum(local["stage_seconds"].values())
+    return {
+        "workers": workers,
+        "local": local,
+        "ray": rows["ray"],
+        "identical_bytes_local_vs_ray": rows["local"]["digest"] == rows["ray"]["digest"],
+        "seconds_per_frame_per_core": cpu_seconds / max(local["frames_built"], 1),
+        "stage_seconds_per_frame": {k: v / max(local["frames_built"], 1) for k, v in local["stage_seconds"].items()},
+    }
+
+
+def scene_artifacts(data_root: Path, out: Path) -> list[dict[str, Any]]:
+    """The cached stage artifacts of every scene of the local build (nothing is recomputed)."""
+    from stages import PIPELINE
+
+    params = default_params(PIPELINE)
+    tasks = plan_tasks(resolve_logs(data_root), data_root, data_root / "maps", str(out), default_work_root(str(out)), params)
+    wanted = ("scene", "registration", "semantics", "grids", "background_surface", "background_aggregate")
+    return [run_stages(task, PIPELINE, wanted) for task in tasks]
+
+
+def swept_mask(scene, pose: np.ndarray) -> np.ndarray:
+    """Voxels that the boxes of moving agents cover at any sweep of the scene, in the ego grid of `pose`
+    (T_global_from_ego). Intersected with the truth's empty space, this is where a motion trail would show."""
+    from nuplan_occ.pipeline.frame_columns import MOVING_SPEED_MPS
+    from nuplan_occ.voxel.voxelize import box_voxel_indices, indices_to_grid
+
+    T_ego_from_global = invert_transform(pose)
+    mask = np.zeros(DEFAULT_GRID.shape, dtype=bool)
+    for sweep in scene.sweeps:
+        boxes = sweep.boxes_global.transformed(T_ego_from_global, "ego")
+        moving = np.flatnonzero(np.linalg.norm(boxes.velocities[:, :2], axis=1) > MOVING_SPEED_MPS)
+        for k in moving:
+            mask |= indices_to_grid(box_voxel_indices(boxes.centers[k], boxes.yaws[k], boxes.sizes[k], DEFAULT_GRID))
+    return mask
+
+
+def paper_method_frame(artifacts: dict, token: str, position: int, layers) -> np.ndarray:
+    """The paper's voxelization and labeling on the same surfaces: mesh vertices (one midpoint
+    subdivision) with a majority label, then whole-column map stamping."""
+    grids = artifacts["grids"][token]
+    pose = artifacts["registration"].poses[position]
+    surface = artifacts["background_surface"]
+    T = invert_transform(pose) @ artifacts["background_aggregate"].T_global_from_scene
+    vertices = transform_points(T, surface.vertices)
+    background = paper_voxelize_vertices(vertices, DEFAULT_GRID, faces=surface.faces if len(surface.faces) else None)
+    semantics = np.where(background > 0, 1, 0).astype(np.uint8)
+    objects = grids.instance > 0
+    semantics[objects] = grids.semantics[objects]
+    if layers is None:
+        return semantics
+    bev = rasterize_bev(layers, pose, DEFAULT_GRID)
+    return paper_column_stamp(semantics, np.isin(bev, [ROAD, ROAD_LINE]), bev == ROAD_LINE, DEFAULT_GRID)
+
+
+def bench_quality(data_root: Path, out: Path) -> dict[str, Any]:
+    """Built frames vs truth inside the truth's mask_lidar; the paper's method on the same input."""
+    from nuplan_occ.io.maps import LABEL_LAYERS, NuplanMap
+
+    truth = open_dataset(str(data_root / "truth"))
+    ours, paper, trails, paper_trails, holes, paper_holes = [], [], [], [], [], []
+    for artifacts in scene_artifacts(data_root, out):
+        scene = artifacts["scene"]
+        layers = None
+        if scene.map_path:
+            center = artifacts["registration"].poses[0][:2, 3]
+            layers = NuplanMap(scene.map_path).layers_in_window(center, 150.0, LABEL_LAYERS)
+        position_of = {s.token: i for i, s in enumerate(scene.sweeps)}
+        for token, semantics in artifacts["semantics"].items():
+            reference = truth[truth.index_of_token(token)]
+            mask = reference["mask_lidar"]
+            baseline = paper_method_frame(artifacts, token, position_of[token], layers)
+            ours.append(occupancy_metrics(semantics, reference["semantics"], mask))
+            paper.append(occupancy_metrics(baseline, reference["semantics"], mask))
+            swept = swept_mask(scene, artifacts["registration"].poses[position_of[token]])
+            swept &= reference["semantics"] == 0  # truly empty now: anything built there is a trail
+            trails.append(trail_count(semantics, swept, artifacts["grids"][token].instance > 0))
+            paper_trails.append(trail_count(baseline, swept, artifacts["grids"][token].instance > 0))
+            drivable = np.isin(reference["semantics"], [ROAD, ROAD_LINE]).any(axis=2)
+            ground_index = np.argmax(np.isin(reference["semantics"], [ROAD, ROAD_LINE]), axis=2)
+            holes.append(ground_hole_rate(semantics, drivable, ground_index))
+            paper_holes.append(ground_hole_rate(baseline, drivable, ground_index))
+    return {
+        "frames": len(ours),
+        "ours": summarize_metrics(ours, trails, holes),
+        "paper_method": summarize_metrics(paper, paper_trails, paper_holes),
+    }
+
+
+def summarize_metrics(metrics: list[dict], trails: list[int], holes: list[float]) -> dict[str, Any]:
+    """Medians over frames of IoU, mIoU and per-class IoU; total trail voxels; median hole rate."""
+    classes = sorted({c for m in metrics for c in m["per_class"]})
+    return {
+        "iou": float(np.median([m["iou"] for m in metrics])),
+        "miou": float(np.median([m["miou"] for m in metrics])),
+        "per_class_iou": {LABELS.names[c]: float(np.median([m["per_class"][c] for m in metrics if c in m["per_class"]]))
+                          for c in classes},
+        "trail_voxels_total": int(np.sum(trails)),
+        "ground_hole_rate": float(np.median(holes)),
+    }
+
+
+def bench_fbsa(data_root: Path, out: Path) -> dict[str, Any]:
+    """Pose error of logged and refined poses against the true poses (synthetic truth), per frame."""
+    from nuplan_occ.fbsa.metrics import pose_errors
+
+    truth = open_dataset(str(data_root / "truth"))
+    logged, refined, true = [], [], []
+    accepted = []
+    for artifacts in scene_artifacts(data_root, out):
+        scene, registration = artifacts["scene"], artifacts["registration"]
+        for position, sweep in enumerate(scene.sweeps):
+            index = truth.index_of_token(sweep.token)
+            logged.append(sweep.logged_pose)
+            refined.append(registration.poses[position])
+            true.append(truth.get(index, keys=())["ego_to_global"])
+            accepted.append(bool(registration.accepted[position]))
+    truth_poses = np.stack(true)
+    return {
+        "frames": len(true),
+        "accepted_fraction": float(np.mean(accepted)),
+        "logged": pose_errors(np.stack(logged), truth_poses).medians(),
+        "refined": pose_errors(np.stack(refined), truth_poses).medians(),
+    }
+
+
+def bench_recon(half_extent: float) -> list[dict]:
+    """The three surface methods on a synthetic street scan, against its noise-free surface."""
+    from nuplan_occ.recon.bench import compare_methods
+    from nuplan_occ.recon.synthetic import street_scan
+
+    scan = street_scan(half=half_extent)
+    return compare_methods(scan.points, scan.origins, scan.truth_points)
+
+
+def bench_voxel_costs() -> dict[str, Any]:
+    """Median seconds per frame of compose, LiDAR and camera visibility on a realistic frame."""
+    from nuplan_occ.voxel.bench import realistic_frame_costs
+
+    return realistic_frame_costs()
+
+
+def bench_occgen(out_dir: Path, steps: int) -> dict[str, Any]:
+    """occgen: VAE reconstruction at both compression ratios, and learned LiDAR vs ray casting."""
+    from occgen.bench import make_synthetic_dataset, run_vae_bench, write_curve_png
+
+    data = out_dir / "occgen_data"
+    shutil.rmtree(data, ignore_errors=True)
+    make_synthetic_dataset(str(data))
+    results = {name: run_vae_bench(str(data), steps, config=name) for name in ("tiny", "tiny512")}
+    write_curve_png({name: r["losses"] for name, r in results.items()}, out_dir / "occgen_vae_loss.png")
+    return {name: {k: v for k, v in r.items() if k not in ("losses", "loss_terms")} for name, r in results.items()}
+
+
+def write_report(report: dict, out_dir: Path) -> None:
+    """bench/report.json and a readable bench/report.md."""
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=float))
+    (out_dir / "report.md").write_text(render_markdown(report))
+
+
+def _table(header: list[str], rows: list[list[Any]]) -> str:
+    def cell(value: Any) -> str:
+        return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def render_markdown(report: dict) -> str:
+    """The report as Markdown tables."""
+    parts = [f"# nuplan-occ bench ({report['software']}, {report['machine']})", "",
+             f"Synthetic `small` log, seed {report['seed']}, {report['seconds']} s; targets from the issues in brackets.", ""]
+    if "build" in report:
+        b = report["build"]
+        parts += ["## Build", "", _table(
+            ["executor", "frames", "failed", "wall s", "frames/s", "bytes/frame", "peak RSS MiB"],
+            [[name, b[name]["frames_built"], b[name]["frames_failed"], b[name]["wall_seconds"], b[name]["frames_per_s"],
+              b[name]["bytes_per_frame"], b[name]["peak_rss_mb_per_worker"]] for name in ("local", "ray")]), "",
+            f"- identical bytes local vs Ray: {b['identical_bytes_local_vs_ray']}",
+            f"- seconds per frame per core (sum of stage times / frames): {b['seconds_per_frame_per_core']:.2f} [<= 1.0]",
+            "", _table(["stage", "s per frame"], [[k, v] for k, v in b["stage_seconds_per_frame"].items()]), ""]
+    if "quality" in report:
+        q = report["quality"]
+        classes = sorted(set(q["ours"]["per_class_iou"]) | set(q["paper_method"]["per_class_iou"]))
+        parts += ["## Quality against truth (inside the truth's mask_lidar, median over frames)", "",
+                  f"{q['frames']} frames. Targets: IoU >= 0.85, mIoU >= 0.75, zero trails.", "",
+                  _table(["method", "IoU", "mIoU", "trail voxels", "ground hole rate", *classes],
+                         [[name, q[name]["iou"], q[name]["miou"], q[name]["trail_voxels_total"], q[name]["ground_hole_rate"],
+                           *[q[name]["per_class_iou"].get(c, float("nan")) for c in classes]]
+                          for name in ("ours", "paper_method")]), ""]
+    if "fbsa" in report:
+        f = report["fbsa"]
+        keys = list(f["logged"])
+        parts += ["## Pose refinement (median absolute error against the true poses)", "",
+                  f"{f['frames']} sweeps, {f['accepted_fraction']:.0%} corrections accepted. Targets: <= 5 cm, <= 0.1 deg.", "",
+                  _table(["poses", *keys], [[name, *[f[name][k] for k in keys]] for name in ("logged", "refined")]), ""]
+    if "recon" in report:
+        keys = ["time_s", "peak_mb", "chamfer", "precision@0.1", "recall@0.1", "fscore@0.1", "precision@0.25",
+                "recall@0.25", "fscore@0.25"]
+        rows = [[r["method"], *[r.get(k, float("nan")) for k in keys]] for r in report["recon"]]
+        parts += ["## Surface reconstruction (synthetic street scan vs its noise-free surface)", "",
+                  _table(["method", *keys], rows), ""]
+    if "voxel_costs" in report:
+        parts += ["## Per-frame voxel work (median s)", "",
+                  _table(["step", "s"], [[k, v] for k, v in report["voxel_costs"].items() if isinstance(v, float)]), ""]
+    if "decode" in report:
+        parts += ["## Decode", "", _table(["what", "value"], [[k, v] for k, v in report["decode"].items()]), ""]
+    if "occgen" in report:
+        parts += ["## occgen VAE (short CPU training)", "",
+                  _table(["config", "steps", "compression", "IoU", "mIoU"],
+                         [[n, r["steps"], r["compression_ratio"], r["iou"], r["miou"]] for n, r in report["occgen"].items()]), ""]
+    return "\n".join(parts)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("command", choices=["bench"])
+    parser.add_argument("--out", type=Path, default=Path("bench"))
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--recon-extent", type=float, default=30.0, help="half extent (m) of the recon bench street")
+    parser.add_argument("--occgen-steps", type=int, default=0, help="occgen VAE training steps (0 = skip)")
+    args = parser.parse_args(argv)
+
+    from nuplan_occ.storage.throughput import decode_throughput
+    from nuplan_occ.synth.generate import synthesize
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    data_root = args.out / "data"
+    shutil.rmtree(data_root, ignore_errors=True)
+    started = time.perf_counter()
+    synthesize(data_root, logs=1, seconds=args.seconds, seed=BENCH_SEED, preset="small")
+    report: dict[str, Any] = {"software": f"nuplan-occ {__version__}", "machine": platform.machine(),
+                              "seed": BENCH_SEED, "seconds": args.seconds,
+                              "synth_seconds": time.perf_counter() - started}
+    sections = [
+        ("build", lambda: bench_build(data_root, args.out, args.workers)),
+        ("quality", lambda: bench_quality(data_root, args.out / "build_local")),
+        ("fbsa", lambda: bench_fbsa(data_root, args.out / "build_local")),
+        ("recon", lambda: bench_recon(args.recon_extent)),
+        ("voxel_costs", bench_voxel_costs),
+        ("decode", lambda: decode_throughput(str(args.out / "build_local"))),
+    ]
+    if args.occgen_steps:
+        sections.append(("occgen", lambda: bench_occgen(args.out, args.occgen_steps)))
+    for name, run in sections:
+        print(f"bench: {name} ...", flush=True)
+        report[name] = run()
+        write_report(report, args.out)
+    print((args.out / "report.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
