@@ -88,7 +88,7 @@ def summary(
 @app.command()
 def demo(
     out: Path = typer.Argument(Path("demo_out"), help="Folder for the synthetic data, the dataset and the picture."),
-    seconds: float = typer.Option(6.0, help="Seconds of synthetic log."),
+    seconds: float = typer.Option(4.0, help="Seconds of synthetic log."),
     workers: int = typer.Option(2, help="Parallel scene workers."),
 ) -> None:
     """Synthesize a log, build it, print the summary and write a picture of one frame."""
@@ -104,20 +104,33 @@ def demo(
         result = run_build(data_root, str(out / "dataset"), params, workers=workers,
                            on_plan=progress.on_plan, on_event=progress.on_event)
     console.print(summary_table(result))
-    _demo_picture(out)
+    _demo_report(out)
     if result.frames_built == 0:
         raise typer.Exit(code=1)
 
 
-def _demo_picture(out: Path) -> None:
-    """Evaluate against the truth and render one frame (whatever of that exists yet)."""
-    try:
-        from nuplan_occ.viewer import render_frame
-    except ImportError:
-        return
+def _demo_report(out: Path) -> None:
+    """Quality of the demo build against the synthetic truth, and a picture of one frame."""
+    from nuplan_occ.evaluate import evaluate
+    from nuplan_occ.viewer import render_frame
+
+    result = evaluate(str(out / "dataset"), str(out / "data" / "truth"), json_path=out / "eval.json")
+    pooled = result["pooled"]
+    console.print(f"against the synthetic truth (inside its LiDAR mask, {result['frames_matched']} frames): "
+                  f"IoU {pooled['iou']:.3f}, mIoU {pooled['miou']:.3f}; details in {out / 'eval.json'}")
     picture = out / "frame.png"
     render_frame(str(out / "dataset"), index=0, screenshot=picture)
     console.print(f"picture written to {picture}")
+
+
+def _register_dataset_tools() -> None:
+    """view, eval, stats, validate, export."""
+    from nuplan_occ.cli_dataset import register
+
+    register(app)
+
+
+_register_dataset_tools()
 
 
 def main() -> None:
