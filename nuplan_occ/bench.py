@@ -196,9 +196,9 @@ def bench_recon(half_extent: float) -> list[dict]:
 
 def bench_voxel_costs() -> dict[str, Any]:
     """Median seconds per frame of compose, LiDAR and camera visibility on a realistic frame."""
-    from nuplan_occ.voxel.bench import realistic_frame_costs
+    from nuplan_occ.voxel.bench import synthetic_frame_costs
 
-    return realistic_frame_costs()
+    return synthetic_frame_costs()
 
 
 def bench_occgen(out_dir: Path, steps: int) -> dict[str, Any]:

@@ -11,7 +11,8 @@ within rounding error of it, occupies only the voxel above it (the convention of
 `GridSpec.point_to_index`). The test is the separating-axis theorem (13 axes, Akenine-Moeller's
 triangle/box overlap). Triangles with an edge longer than one voxel are first split into n^2 congruent
 sub-triangles (exact: their union is the triangle), so every candidate set is at most 2x2x2 voxels and
-large triangles never leave holes.
+large triangles never leave holes. Triangles are split and tested SPLIT_CHUNK at a time (the working set
+stays in cache), on per-component arrays, dropping candidates as soon as a group of axes separates them.
 """
 
 from __future__ import annotations
@@ -24,8 +25,12 @@ from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 EPS = 1e-7
 """Shift (voxel units) of the closed test cubes [i-EPS, i+1-EPS] that emulates half-open voxels."""
 
-CANDIDATE_CHUNK = 1_000_000
-"""Triangle/voxel candidate pairs tested at once (bounds temporary memory to ~ a few hundred MB)."""
+SPLIT_CHUNK = 8_192
+"""(Sub-)triangles voxelized at once (at most 8 candidate voxels each): bounds temporary memory and keeps
+the working set in cache."""
+
+DENSE_LIMIT = 64_000_000
+"""Largest lattice box (voxels) over a mesh whose touched voxels are collected in a dense bitmap."""
 
 _OFFSETS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
 
@@ -72,22 +77,24 @@ def _subdivision_template(n: int) -> np.ndarray:
     return np.concatenate([up, dn], axis=0).astype(np.float64) / n
 
 
-def _split_long_triangles(tri: np.ndarray, max_edge: float = 0.999) -> np.ndarray:
-    """(T, 3, 3) triangles (voxel units) -> triangles whose edges are all <= max_edge (same union)."""
+def _split_long_triangles(tri: np.ndarray, max_edge: float = 0.999):
+    """Yield, in chunks of about SPLIT_CHUNK, triangles whose edges are all <= max_edge (voxel units)
+    and whose union is that of the (T, 3, 3) triangles `tri`."""
     edges = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], axis=1)
     longest = np.linalg.norm(edges, axis=2).max(axis=1)
     n_split = np.maximum(np.ceil(longest / max_edge), 1).astype(np.int64)
-    out = [tri[n_split == 1]]
+    short = tri[n_split == 1]
+    for start in range(0, len(short), SPLIT_CHUNK):
+        yield short[start:start + SPLIT_CHUNK]
     for n in np.unique(n_split[n_split > 1]):
         group = tri[n_split == n]
         weights = _subdivision_template(int(n))  # (n^2, 3, 2)
-        per_chunk = max(1, CANDIDATE_CHUNK // len(weights))
+        per_chunk = max(1, SPLIT_CHUNK // len(weights))
         for start in range(0, len(group), per_chunk):
             g = group[start:start + per_chunk]
             e1, e2 = (g[:, 1] - g[:, 0])[:, None, None, :], (g[:, 2] - g[:, 0])[:, None, None, :]
             sub = g[:, None, None, 0, :] + weights[None, :, :, 0:1] * e1 + weights[None, :, :, 1:2] * e2
-            out.append(sub.reshape(-1, 3, 3))
-    return np.concatenate(out, axis=0)
+            yield sub.reshape(-1, 3, 3)
 
 
 def _min3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -99,31 +106,39 @@ def _max3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 
 def _triangle_box_overlap(tri: np.ndarray, voxel: np.ndarray) -> np.ndarray:
-    """(M,) bool: closed triangle (M, 3, 3) intersects voxel (M, 3) cube [v-EPS, v+1-EPS]^3 (voxel units).
+    """(M,) bool: closed triangle intersects voxel cube [v-EPS, v+1-EPS]^3 (voxel units); tri (3, 3, M)
+    [vertex, axis, candidate], voxel (3, M) int [axis, candidate].
 
     Separating-axis test: 3 cube normals, the triangle normal, and the 9 cross products of cube axes
-    with triangle edges; candidates failing the cheap tests are dropped before the next ones."""
+    with triangle edges, on vertices u = vertex - cube centre. Works on per-component arrays;
+    candidates failing a group of tests are dropped before the next group (the verdict is the AND of
+    all tests, so the order does not matter)."""
     h = 0.5
     center = voxel.astype(np.float64) + (h - EPS)
-    u0, u1, u2 = tri[:, 0] - center, tri[:, 1] - center, tri[:, 2] - center
-    ok = np.ones(len(tri), dtype=bool)
+    u = [[tri[i, a] - center[a] for a in range(3)] for i in range(3)]  # u[vertex][axis], (M,)
+    ok = np.ones(voxel.shape[1], dtype=bool)
     for a in range(3):
-        ok &= (_min3(u0[:, a], u1[:, a], u2[:, a]) <= h) & (_max3(u0[:, a], u1[:, a], u2[:, a]) >= -h)
-    e0, e1 = u1 - u0, u2 - u0
-    normal = np.cross(e0, e1)
-    ok &= np.abs((normal * u0).sum(axis=1)) <= h * np.abs(normal).sum(axis=1)
+        ok &= (_min3(u[0][a], u[1][a], u[2][a]) <= h) & (_max3(u[0][a], u[1][a], u[2][a]) >= -h)
     alive = np.flatnonzero(ok)
-    u0, u1, u2 = u0[alive], u1[alive], u2[alive]
-    keep = np.ones(len(alive), dtype=bool)
-    for f in (u1 - u0, u2 - u1, u0 - u2):
+    u = [[c[alive] for c in vertex] for vertex in u]
+    e0, e1 = [u[1][a] - u[0][a] for a in range(3)], [u[2][a] - u[0][a] for a in range(3)]
+    normal = [e0[1] * e1[2] - e0[2] * e1[1], e0[2] * e1[0] - e0[0] * e1[2], e0[0] * e1[1] - e0[1] * e1[0]]
+    dot = normal[0] * u[0][0] + normal[1] * u[0][1] + normal[2] * u[0][2]
+    keep = np.abs(dot) <= h * (np.abs(normal[0]) + np.abs(normal[1]) + np.abs(normal[2]))
+    for start, stop in ((0, 1), (1, 2), (2, 0)):
+        idx = np.flatnonzero(keep)
+        alive, u = alive[idx], [[c[idx] for c in vertex] for vertex in u]
+        f = [u[stop][a] - u[start][a] for a in range(3)]
+        keep = np.ones(len(alive), dtype=bool)
         for a, b in ((1, 2), (2, 0), (0, 1)):  # axis e_c x f has components -f_b at a, f_a at b
-            p0 = u0[:, b] * f[:, a] - u0[:, a] * f[:, b]
-            p1 = u1[:, b] * f[:, a] - u1[:, a] * f[:, b]
-            p2 = u2[:, b] * f[:, a] - u2[:, a] * f[:, b]
-            r = h * (np.abs(f[:, a]) + np.abs(f[:, b]))
+            p0 = u[0][b] * f[a] - u[0][a] * f[b]
+            p1 = u[1][b] * f[a] - u[1][a] * f[b]
+            p2 = u[2][b] * f[a] - u[2][a] * f[b]
+            r = h * (np.abs(f[a]) + np.abs(f[b]))
             keep &= (_min3(p0, p1, p2) <= r) & (_max3(p0, p1, p2) >= -r)
-    ok[alive] = keep
-    return ok
+    out = np.zeros(voxel.shape[1], dtype=bool)
+    out[alive[keep]] = True
+    return out
 
 
 def unique_indices(indices: np.ndarray) -> np.ndarray:
@@ -143,33 +158,46 @@ def unique_indices(indices: np.ndarray) -> np.ndarray:
     return np.stack(np.unravel_index(key, tuple(dims)), axis=1) + lo
 
 
+def _small_triangle_voxels(tri: np.ndarray) -> np.ndarray:
+    """(M, 3) voxel indices (with repeats) touched by triangles (T, 3, 3), voxel units, whose edges are
+    shorter than one voxel: each spans at most 2 x 2 x 2 candidate voxels, tested exactly."""
+    base = np.floor(_min3(tri[:, 0], tri[:, 1], tri[:, 2]) + EPS).astype(np.int64)
+    extent = np.floor(_max3(tri[:, 0], tri[:, 1], tri[:, 2]) + EPS).astype(np.int64) - base  # 0 or 1
+    single = (extent[:, 0] == 0) & (extent[:, 1] == 0) & (extent[:, 2] == 0)
+    multi = np.flatnonzero(~single)
+    ext = extent[multi]
+    valid = ((_OFFSETS[None, :, 0] <= ext[:, 0:1]) & (_OFFSETS[None, :, 1] <= ext[:, 1:2])
+             & (_OFFSETS[None, :, 2] <= ext[:, 2:3]))  # (m, 8)
+    t_idx, o_idx = np.nonzero(valid)
+    t_idx = multi[t_idx]
+    voxels = base[t_idx] + _OFFSETS[o_idx]
+    components = np.ascontiguousarray(tri.transpose(1, 2, 0))  # (vertex, axis, triangle)
+    hit = _triangle_box_overlap(np.take(components, t_idx, axis=2), np.ascontiguousarray(voxels.T))
+    return np.concatenate([base[single], voxels[hit]], axis=0)
+
+
 def triangle_voxel_indices(tri_units: np.ndarray) -> np.ndarray:
     """Unique (M, 3) int64 voxel indices touched by triangles (T, 3, 3) given in voxel units (unbounded)."""
     if len(tri_units) == 0:
         return np.zeros((0, 3), dtype=np.int64)
-    tri = _split_long_triangles(tri_units)
-    base = np.floor(_min3(tri[:, 0], tri[:, 1], tri[:, 2]) + EPS).astype(np.int64)
-    extent = np.floor(_max3(tri[:, 0], tri[:, 1], tri[:, 2]) + EPS).astype(np.int64) - base  # 0 or 1 after the split
-    single = (extent[:, 0] == 0) & (extent[:, 1] == 0) & (extent[:, 2] == 0)
-    found = [base[single]]
-    multi = np.flatnonzero(~single)
-    per_chunk = max(1, CANDIDATE_CHUNK // 8)
-    for start in range(0, len(multi), per_chunk):
-        sel = multi[start:start + per_chunk]
-        ext = extent[sel]
-        valid = ((_OFFSETS[None, :, 0] <= ext[:, 0:1]) & (_OFFSETS[None, :, 1] <= ext[:, 1:2])
-                 & (_OFFSETS[None, :, 2] <= ext[:, 2:3]))  # (m, 8)
-        t_idx, o_idx = np.nonzero(valid)
-        voxels = base[sel][t_idx] + _OFFSETS[o_idx]
-        hit = _triangle_box_overlap(tri[sel][t_idx], voxels)
-        found.append(voxels[hit])
-    return unique_indices(np.concatenate(found, axis=0))
+    lo = np.floor(tri_units.reshape(-1, 3).min(axis=0) + EPS).astype(np.int64) - 1  # sub-triangles stay
+    dims = np.floor(tri_units.reshape(-1, 3).max(axis=0) + EPS).astype(np.int64) + 2 - lo  # inside, +-1 spare
+    if np.prod(dims.astype(np.float64)) > DENSE_LIMIT:
+        found = [_small_triangle_voxels(tri) for tri in _split_long_triangles(tri_units)]
+        return unique_indices(np.concatenate(found, axis=0))
+    seen = np.zeros(int(np.prod(dims)), dtype=bool)
+    for tri in _split_long_triangles(tri_units):
+        rel = _small_triangle_voxels(tri) - lo
+        seen[(rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]] = True
+    return np.stack(np.unravel_index(np.flatnonzero(seen), tuple(dims)), axis=1) + lo
 
 
 def _keep_near_grid(tri_units: np.ndarray, grid: GridSpec) -> np.ndarray:
     """Triangles whose bounding box meets the grid box [0, shape] (voxel units)."""
     shape = np.asarray(grid.shape, dtype=np.float64)
-    near = np.all((tri_units.max(axis=1) >= 0) & (tri_units.min(axis=1) <= shape), axis=1)
+    hi = _max3(tri_units[:, 0], tri_units[:, 1], tri_units[:, 2])
+    lo = _min3(tri_units[:, 0], tri_units[:, 1], tri_units[:, 2])
+    near = np.all((hi >= 0) & (lo <= shape), axis=1)
     return tri_units[near]
 
 

@@ -1,0 +1,148 @@
+"""The fast traversal / voxelization paths give exactly what the straightforward implementations give.
+
+The references below are the original (slow) formulations: every ray traversed over its whole length
+with all entries generated at once; every triangle split and each (sub-triangle, voxel) candidate
+tested with the separating-axis theorem on (M, 3, 3) arrays."""
+
+import numpy as np
+import pytest
+
+from nuplan_occ.geometry import make_transform
+from nuplan_occ.grid import GridSpec
+from nuplan_occ.io.types import CameraCalibration
+from nuplan_occ.voxel import voxelize
+from nuplan_occ.voxel.visibility import _clip_to_box, camera_rays, camera_visibility, lidar_observation
+
+GRID = GridSpec(x_min=-6, x_max=6, y_min=-5, y_max=5, z_min=-2, z_max=2, voxel_size=0.25)
+
+
+def reference_entries(starts, ends, grid):
+    """(ray, flat voxel, t) of every voxel entered by each segment over its whole length."""
+    shape = np.asarray(grid.shape)
+    o_all = (starts - grid.lower) / grid.voxel_size
+    d_all = (ends - grid.lower) / grid.voxel_size - o_all
+    t0, t1 = _clip_to_box(o_all, d_all, shape.astype(np.float64))
+    rays = np.flatnonzero(t0 < t1)
+    o, d, t0, t1 = o_all[rays], d_all[rays], t0[rays], t1[rays]
+    a, b = o + t0[:, None] * d, o + t1[:, None] * d
+    first = np.floor(np.minimum(a, b)).astype(np.int64) + 1
+    count = np.where(d == 0, 0, np.maximum(np.floor(np.maximum(a, b)).astype(np.int64) - first + 1, 0))
+    inv_len = 1e-6 / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+    ray_ids, ts = [np.arange(len(o))], [t0]
+    for axis in range(3):
+        for r in range(len(o)):
+            k = first[r, axis] + np.arange(count[r, axis])
+            ray_ids.append(np.full(len(k), r))
+            ts.append((k - o[r, axis]) / d[r, axis])
+    ids, t = np.concatenate(ray_ids), np.concatenate(ts)
+    keep = t < t1[ids]
+    keep[: len(o)] = True
+    ids, t = ids[keep], t[keep]
+    vox = np.floor(o[ids] + (t + inv_len[ids])[:, None] * d[ids]).astype(np.int64)
+    inside = np.all((vox >= 0) & (vox < shape), axis=1)
+    ids, t, vox = ids[inside], t[inside], vox[inside]
+    return rays[ids], np.ravel_multi_index(vox.T, grid.shape), t
+
+
+def random_segments(rng, n):
+    """Segments of every kind: random, leaving the grid, axis-parallel, on lattice planes, degenerate."""
+    starts = rng.uniform(-7, 7, size=(n, 3)) * [1, 1, 0.4]
+    ends = starts + rng.normal(size=(n, 3)) * [6, 6, 2]
+    lattice = rng.random(n) < 0.3
+    starts[lattice] = np.round(starts[lattice] * 4) / 4
+    ends[lattice] = np.round(ends[lattice] * 4) / 4
+    parallel = rng.random(n) < 0.2
+    ends[parallel, 1:] = starts[parallel, 1:]
+    ends[:3] = starts[:3]
+    grazing = slice(3, 23)  # nearly parallel to a y plane, crossing it (the floating-point fallback)
+    starts[grazing, 1], ends[grazing, 1] = 0.25 - 1e-10, 0.25 + rng.uniform(-1e-9, 1e-9, 20)
+    return starts, ends
+
+
+def test_lidar_observation_equals_full_traversal():
+    rng = np.random.default_rng(5)
+    origin = np.array([0.3, -0.2, 0.4])
+    starts, ends = random_segments(rng, 400)
+    ends = np.concatenate([ends, origin + rng.normal(size=(300, 3)) * [5, 5, 1]])
+    expected = np.zeros(GRID.shape, np.uint8).ravel()
+    _, flat, _ = reference_entries(np.broadcast_to(origin, ends.shape), ends, GRID)
+    expected[flat] = 1
+    idx, inside = GRID.point_to_index(ends)
+    expected[np.ravel_multi_index(idx[inside].T, GRID.shape)] = 2
+    assert np.array_equal(lidar_observation(ends, origin, GRID).ravel(), expected)
+    per_ray = np.zeros(GRID.shape, np.uint8).ravel()
+    _, flat, _ = reference_entries(starts, ends[:400], GRID)
+    per_ray[flat] = 1
+    idx, inside = GRID.point_to_index(ends[:400])
+    per_ray[np.ravel_multi_index(idx[inside].T, GRID.shape)] = 2
+    assert np.array_equal(lidar_observation(ends[:400], starts, GRID).ravel(), per_ray)
+
+
+def camera(yaw, position, f=60.0):
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.stack([[s, -c, 0.0], [0.0, 0.0, -1.0], [c, s, 0.0]], axis=1)
+    K = np.array([[f, 0.3, 64.0], [0.0, f * 1.1, 36.0], [0.0, 0.0, 1.0]])
+    return CameraCalibration("c", "CAM", "pinhole", K, np.zeros(5), make_transform(R, position), 128, 72)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_camera_visibility_equals_full_traversal(seed):
+    rng = np.random.default_rng(seed)
+    occupied = rng.random(GRID.shape) < 0.01
+    occupied[:, :, 5] |= rng.random(GRID.shape[:2]) < 0.8  # a leaky ground layer
+    cams = [camera(rng.uniform(-np.pi, np.pi), rng.uniform(-1, 1, 3) * [4, 3, 0.5]) for _ in range(3)]
+    cams.append(camera(0.0, np.array([-5.9, 0.0, 0.0])))  # axis-parallel rays from near the border
+    max_range, step, near = 14.0, 0.25 / 14.0, 0.5
+    expected = np.zeros(occupied.size, bool)
+    for cam in cams:
+        origin, dirs = camera_rays(cam, step)
+        starts = np.broadcast_to(origin, dirs.shape)
+        ids, flat, t = reference_entries(starts, starts + dirs * max_range, GRID)
+        blocking = occupied.ravel()[flat] & (t >= near / max_range)
+        t_hit = np.full(len(dirs), np.inf)
+        np.minimum.at(t_hit, ids[blocking], t[blocking])
+        expected[flat[t <= t_hit[ids]]] = True
+    got = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near)
+    assert np.array_equal(got.ravel(), expected)
+    assert 0 < got.sum() < got.size
+
+
+def reference_triangle_voxels(tri_units):
+    """Split every triangle to edges < 1 voxel, test each (sub-triangle, voxel) of its 2x2x2 box by SAT."""
+    eps, h = voxelize.EPS, 0.5
+    parts = []
+    edges = np.stack([tri_units[:, 1] - tri_units[:, 0], tri_units[:, 2] - tri_units[:, 1],
+                      tri_units[:, 0] - tri_units[:, 2]], axis=1)
+    n_split = np.maximum(np.ceil(np.linalg.norm(edges, axis=2).max(axis=1) / 0.999), 1).astype(int)
+    for n in np.unique(n_split):
+        g = tri_units[n_split == n]
+        w = voxelize._subdivision_template(int(n))
+        e1, e2 = (g[:, 1] - g[:, 0])[:, None, None, :], (g[:, 2] - g[:, 0])[:, None, None, :]
+        parts.append((g[:, None, None, 0, :] + w[None, :, :, 0:1] * e1 + w[None, :, :, 1:2] * e2).reshape(-1, 3, 3))
+    tri = np.concatenate(parts)
+    base = np.floor(tri.min(axis=1) + eps).astype(np.int64)
+    offsets = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    t_idx = np.repeat(np.arange(len(tri)), 8)
+    vox = base[t_idx] + np.tile(offsets, (len(tri), 1))
+    top = np.floor(tri.max(axis=1) + eps).astype(np.int64)[t_idx]
+    t_idx, vox = t_idx[np.all(vox <= top, axis=1)], vox[np.all(vox <= top, axis=1)]
+    u = tri[t_idx] - (vox + (h - eps))[:, None, :]
+    ok = np.all((u.min(axis=1) <= h) & (u.max(axis=1) >= -h), axis=1)
+    normal = np.cross(u[:, 1] - u[:, 0], u[:, 2] - u[:, 0])
+    ok &= np.abs((normal * u[:, 0]).sum(axis=1)) <= h * np.abs(normal).sum(axis=1)
+    for f in (u[:, 1] - u[:, 0], u[:, 2] - u[:, 1], u[:, 0] - u[:, 2]):
+        for a, b in ((1, 2), (2, 0), (0, 1)):
+            p = u[:, :, b] * f[:, None, a] - u[:, :, a] * f[:, None, b]
+            r = h * (np.abs(f[:, a]) + np.abs(f[:, b]))
+            ok &= (p.min(axis=1) <= r) & (p.max(axis=1) >= -r)
+    return np.unique(vox[ok], axis=0)
+
+
+@pytest.mark.parametrize("scale, count", [(0.4, 300), (1.0, 300), (3.0, 300), (12.0, 200)])
+def test_triangle_voxels_equal_candidate_sat(scale, count):
+    rng = np.random.default_rng(int(scale * 10))
+    tri = rng.uniform(-1, 1, size=(count, 3, 3)) * scale + rng.uniform(-4, 4, size=(count, 1, 3))
+    tri[:100] = np.round(tri[:100] * 2) / 2  # vertices on the lattice and on half voxels: touching cases
+    tri[100:150, :, 2] = np.round(tri[100:150, :1, 2])  # flat triangles on a lattice plane
+    tri[150:160, 1] = tri[150:160, 0]  # degenerate (segments)
+    assert np.array_equal(voxelize.triangle_voxel_indices(tri), reference_triangle_voxels(tri))
