@@ -1,9 +1,12 @@
 """Stage 4, aggregate (FBSA): the scene's background in one scene-local frame with the refined poses;
 each track's foreground accumulated in its box frame (rigid classes over the whole scene, pedestrians
 over a short window around each frame). Per-point sensor origins are kept for normal orientation.
+For space carving, the background rays of each frame that cross a rigid track's box are kept in that
+box's frame (they show where the object is not).
 
 Inputs: `scene`, `splits`, `background`, `registration`.
-Outputs: `background_aggregate` (BackgroundAggregate, scene frame), `objects` (track -> ObjectAggregate).
+Outputs: `background_aggregate` (BackgroundAggregate, scene frame), `objects` (track -> ObjectAggregate),
+`object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.fbsa.aggregate import aggregate_background, aggregate_objects
+from nuplan_occ.fbsa.carve import segments_through_box
 from nuplan_occ.pipeline.stage import Stage
 
 
@@ -38,9 +42,20 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     )
     objects = aggregate_objects([inputs["splits"][i] for i in ok], [scene.sweeps[i].boxes for i in ok],
                                 rigid_categories=params.rigid_categories)
-    return {"background_aggregate": background, "objects": objects}
+    through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for i in ok:
+        boxes, points = scene.sweeps[i].boxes, inputs["background"][i]
+        origins = np.broadcast_to(scene.sensor_origin_ego, points.shape)
+        for k, track in enumerate(boxes.track_tokens):
+            if track in objects and objects[track].rigid:
+                through.setdefault(track, []).append(
+                    segments_through_box(origins, points, boxes.centers[k], float(boxes.yaws[k]), boxes.sizes[k]))
+    object_through_rays = {track: (np.vstack([r[0] for r in rays]), np.vstack([r[1] for r in rays]))
+                           for track, rays in through.items()}
+    return {"background_aggregate": background, "objects": objects, "object_through_rays": object_through_rays}
 
 
 STAGE = Stage("aggregate", inputs=("scene", "splits", "background", "registration"),
-              outputs=("background_aggregate", "objects"), params_type=AggregateParams, run=run,
-              code=("nuplan_occ.fbsa.aggregate",), doc=__doc__ or "")
+              outputs=("background_aggregate", "objects", "object_through_rays"), params_type=AggregateParams,
+              run=run,
+              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve"), doc=__doc__ or "")

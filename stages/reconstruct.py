@@ -1,43 +1,81 @@
 """Stage 5, reconstruct: surfaces from the aggregates with the neural-kernel-style torch solver
-(default), Open3D screened Poisson, or "none" (raw points).
+(default), Open3D screened Poisson, or "none" (raw points), and solid shapes of rigid objects.
 
-The background is reconstructed in the scene frame. Each rigid object is reconstructed in its box
-frame from its aggregate; non-rigid objects (pedestrians) keep their raw windowed points, since their
-shape changes from frame to frame. Objects with fewer than `min_object_points` points keep raw points.
+The background is reconstructed in the scene frame, and a meshed background gets the ground height
+field of its aggregate added where the rings leave gaps (`ground_fill`). Each rigid object is
+reconstructed in its box frame from its aggregate; non-rigid objects (pedestrians) keep their raw
+windowed points, since their shape changes from frame to frame. Objects with fewer than
+`min_object_points` points keep raw points.
+With `carve_objects`, each rigid object of `carve_categories` with points also gets its solid by space
+carving of its box (fbsa.carve: the box minus the space crossed by its own rays and by the background
+rays through its box), which the voxelize stage prefers to its surface.
 
-Inputs: `background_aggregate`, `objects`.
-Outputs: `background_surface` (Surface, scene frame), `object_surfaces` (track -> Surface, box frame).
+Inputs: `background_aggregate`, `objects`, `object_through_rays`.
+Outputs: `background_surface` (Surface, scene frame), `object_surfaces` (track -> Surface, box frame),
+`object_solids` (track -> (M, 3) centres of solid lattice cells, box frame, m).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
+from nuplan_occ.fbsa.carve import carve_object_solid
+from nuplan_occ.fbsa.ground_fill import ground_fill_mesh
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.recon import reconstruct
+from nuplan_occ.recon import ReconParams, Surface, reconstruct
 
 
 @dataclass(frozen=True)
 class ReconstructParams:
-    """method / object_method: "nksr" | "poisson" | "none"."""
+    """method / object_method: "nksr" | "poisson" | "none". mask_distance_m: the background surface is
+    trimmed where it is farther than this from every aggregated point (ReconParams.mask_distance).
+    ground_fill: add the ground height field of the aggregate (fbsa.ground_fill; triangles with edges up
+    to ground_fill_max_edge_m) to a meshed background, bridging the gaps between far LiDAR rings (10 m
+    chosen by measurement on the synthetic `small` preset: occupied IoU 0.70 without, 0.73 / 0.79 / 0.83
+    at 3 / 6 / 10 m). carve_objects: solids of rigid objects with at least `min_carve_points` points and
+    a category in `carve_categories` by space carving on a lattice of `carve_resolution_m` cells (bicycles and cones, thinner than the boxes' noise, measured better
+    without: IoU 0.58 / 0.54 with their surfaces against 0.39 / 0.44 carved)."""
 
     method: str = "nksr"
     object_method: str = "nksr"
     min_object_points: int = 200
+    mask_distance_m: float = 0.5
+    ground_fill: bool = True
+    ground_fill_max_edge_m: float = 10.0
+    carve_objects: bool = True
+    carve_categories: tuple[str, ...] = ("vehicle", "barrier", "czone_sign", "generic_object")
+    carve_resolution_m: float = 0.1
+    min_carve_points: int = 1
 
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
     background = inputs["background_aggregate"]
-    background_surface = reconstruct(background.points, background.sensor_origins, method=params.method, frame="scene")
-    object_surfaces = {}
+    background_surface = reconstruct(background.points, background.sensor_origins, method=params.method,
+                                     params=ReconParams(mask_distance=params.mask_distance_m), frame="scene")
+    if params.ground_fill and len(background_surface.faces):
+        vertices, faces = ground_fill_mesh(background.points, max_edge_m=params.ground_fill_max_edge_m)
+        background_surface = Surface(np.vstack([background_surface.vertices, vertices]),
+                                     np.vstack([background_surface.faces, faces + len(background_surface.vertices)]),
+                                     "scene", {**background_surface.info, "ground_fill_faces": len(faces)})
+    object_surfaces, object_solids = {}, {}
     for track, aggregate in inputs["objects"].items():
-        if not aggregate.rigid or len(aggregate.points) < params.min_object_points:
+        if not aggregate.rigid:
             continue
-        object_surfaces[track] = reconstruct(aggregate.points, aggregate.sensor_origins,
-                                             method=params.object_method, frame="box")
-    return {"background_surface": background_surface, "object_surfaces": object_surfaces}
+        carve = params.carve_objects and aggregate.category in params.carve_categories
+        if carve and len(aggregate.points) >= max(params.min_carve_points, 1):
+            object_solids[track] = carve_object_solid(aggregate.points, aggregate.sensor_origins, aggregate.size,
+                                                      resolution=params.carve_resolution_m,
+                                                      through=inputs["object_through_rays"].get(track))
+        if len(aggregate.points) >= params.min_object_points:
+            object_surfaces[track] = reconstruct(aggregate.points, aggregate.sensor_origins,
+                                                 method=params.object_method, frame="box")
+    return {"background_surface": background_surface, "object_surfaces": object_surfaces,
+            "object_solids": object_solids}
 
 
-STAGE = Stage("reconstruct", inputs=("background_aggregate", "objects"),
-              outputs=("background_surface", "object_surfaces"), params_type=ReconstructParams, run=run,
-              code=("nuplan_occ.recon",), doc=__doc__ or "")
+STAGE = Stage("reconstruct", inputs=("background_aggregate", "objects", "object_through_rays"),
+              outputs=("background_surface", "object_surfaces", "object_solids"), params_type=ReconstructParams,
+              run=run,
+              code=("nuplan_occ.recon", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.ground_fill"), doc=__doc__ or "")

@@ -1,10 +1,13 @@
 """Stage 6, voxelize: per output frame, the background surface moved into the frame's ego frame
-(refined pose) and each object's surface placed by its box at that frame; background inside current
-boxes is removed; surfaces are voxelized exactly (no holes where triangles exceed a voxel); solid
-objects are filled inside their surface. Gives instance ids (stable per log) and per-voxel flow.
+(refined pose) and each object's geometry placed by its box at that frame: its carved solid (cell
+centres, when the reconstruct stage made one), else its surface, else its raw (windowed) points;
+background inside current boxes is removed; surfaces are voxelized exactly (no holes where triangles
+exceed a voxel); solid objects are filled inside their surface. Gives instance ids (stable per log)
+and per-voxel flow.
 
 Inputs: `scene`, `registration`, `background_aggregate`, `background_surface`, `objects`,
-`object_surfaces`. Outputs: `grids` (sweep token -> FrameGrids; background labeled OTHER here).
+`object_surfaces`, `object_solids`. Outputs: `grids` (sweep token -> FrameGrids; background labeled
+OTHER here).
 """
 
 from __future__ import annotations
@@ -42,13 +45,16 @@ def crop_mesh_to_grid(vertices_ego: np.ndarray, faces: np.ndarray, margin_m: flo
 
 
 def placed_objects(scene, position: int, ok_position: int, T_ego_from_global: np.ndarray, objects: dict,
-                   surfaces: dict, window: int) -> list[PlacedObject]:
-    """The sweep's boxes (moved into the refined ego frame) with their object geometry in the box frame."""
+                   surfaces: dict, solids: dict, window: int) -> list[PlacedObject]:
+    """The sweep's boxes (moved into the refined ego frame) with their object geometry in the box frame:
+    solid cell centres (as points), else surface, else points."""
     sweep = scene.sweeps[position]
     boxes = sweep.boxes_global.transformed(T_ego_from_global, "ego")
     placed = []
     for k, track in enumerate(boxes.track_tokens):
-        if track in surfaces:
+        if track in solids:
+            vertices, faces = solids[track], np.zeros((0, 3), dtype=np.int64)
+        elif track in surfaces:
             vertices, faces = surfaces[track].vertices, surfaces[track].faces
         elif track in objects:
             vertices, _ = objects[track].points_for_frame(ok_position, window)
@@ -77,11 +83,12 @@ def run(inputs: dict, params: VoxelizeParams) -> dict:
             transform_points(T_ego_from_global @ T_global_from_scene, surface.vertices), surface.faces,
             params.crop_margin_m)
         objects = placed_objects(scene, position, ok_position[position], T_ego_from_global, inputs["objects"],
-                                 inputs["object_surfaces"], params.pedestrian_window)
+                                 inputs["object_surfaces"], inputs["object_solids"], params.pedestrian_window)
         grids[sweep.token] = compose_frame(vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects)
     return {"grids": grids}
 
 
 STAGE = Stage("voxelize",
-              inputs=("scene", "registration", "background_aggregate", "background_surface", "objects", "object_surfaces"),
+              inputs=("scene", "registration", "background_aggregate", "background_surface", "objects", "object_surfaces",
+                      "object_solids"),
               outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "")

@@ -86,7 +86,7 @@ def _params(preset: Preset, options: SynthOptions, logs: int, seconds: float, se
     return {"generator": "nuplan_occ.synth", "preset": preset.name, "logs": logs, "seconds": seconds, "seed": seed,
             "truth_rate_hz": truth_rate_hz, "options": asdict(options),
             "truth_frame": "ego frame of the TRUE pose (rear axle above the ground by options.axle_height_m); ego_to_global is the TRUE pose",
-            "truth_rules": "surfaces exact triangle/voxel overlap; box objects solid; priority objects > other > "
+            "truth_rules": "surfaces exact triangle/voxel overlap; box objects solid in their cuboid parts; priority objects > other > "
                            "road_line > road > other_ground; mask_lidar = voxels traversed by returned rays"}
 
 

@@ -2,10 +2,12 @@
 
 semantics (uint8): a voxel is occupied when a world surface intersects it (exact overlap, see
 voxelize.py): ground rectangles, curb faces, building / wall / pole faces, tree crowns. Box-class objects
-(vehicles, pedestrians, cyclists, cones, barriers, signs, generic objects) are SOLID: every voxel their
-box intersects is occupied, although the LiDAR sees their (smaller) mesh. When several surfaces share a
-voxel the label with the highest priority wins: box objects > other (1) > road_line (14) > road (12) >
-other_ground (13); among objects the higher instance id wins. The ego vehicle itself is not in the world.
+(vehicles, pedestrians, cyclists, cones, barriers, signs, generic objects) are SOLID in their actual
+shape: every voxel one of their cuboid parts intersects is occupied (agents.shape_parts, e.g. a vehicle's
+body, cabin and wheels; the empty rest of the box is not), and the LiDAR sees the surfaces of the same
+parts. When several surfaces share a voxel the label with the highest priority wins: box objects >
+other (1) > road_line (14) > road (12) > other_ground (13); among objects the higher instance id wins.
+The ego vehicle itself is not in the world.
 instance (uint16): the object's instance id (1..K) in its voxels, 0 elsewhere.
 mask_lidar (bool): voxels observed by the rig at that frame = traversed by a returned ray on its exact
 (noise-free) segment from the sensor origin to the surface hit, or containing the hit. Dropped rays and
@@ -18,6 +20,7 @@ import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import OTHER, OTHER_GROUND, ROAD, ROAD_LINE
+from nuplan_occ.synth.agents import posed_prisms, shape_parts
 from nuplan_occ.synth.lidar import Sweep, sweep_at
 from nuplan_occ.synth.voxelize import prism_voxel_hits, reduce_labels, segment_voxels, triangle_voxel_hits
 from nuplan_occ.synth.world import World
@@ -71,13 +74,17 @@ def semantic_truth(world: World, t: float, T_local_from_ego: np.ndarray, grid: G
         insts.append(np.zeros(len(flat), np.int64))
 
     if world.agents:
-        states = [a.state(np.array([t])) for a in world.agents]
-        center = np.array([st[0][0] for st in states])
-        a_yaw = np.array([st[1][0] for st in states])
-        size = np.array([a.size for a in world.agents])
-        xy = np.einsum("ij,nj->ni", R2, center[:, :2] - p[:2])
-        z = center[:, 2] - p[2]
-        flat, owner = prism_voxel_hits(xy, size[:, :2] / 2, a_yaw - yaw, z - size[:, 2] / 2, z + size[:, 2] / 2, grid)
+        prisms, yaws, owners = [], [], []
+        for n, agent in enumerate(world.agents):
+            center, a_yaw, _ = agent.state(np.array([t]))
+            ego_center = np.r_[R2 @ (center[0, :2] - p[:2]), center[0, 2] - p[2]]
+            parts = shape_parts(agent.category, agent.size)
+            prisms.append(posed_prisms(parts, ego_center, float(a_yaw[0]) - yaw))
+            yaws.append(np.full(len(parts), float(a_yaw[0]) - yaw))
+            owners.append(np.full(len(parts), n))
+        xy, half, z0, z1 = (np.concatenate(column) for column in zip(*prisms))
+        flat, part = prism_voxel_hits(xy, half, np.concatenate(yaws), z0, z1, grid)
+        owner = np.concatenate(owners)[part]
         flats.append(flat)
         ranks.append(np.full(len(flat), _OBJECT_RANK))
         labels.append(np.array([a.label for a in world.agents])[owner])

@@ -68,11 +68,9 @@ def test_build_end_to_end_default_method_with_bad_blobs(data_root, tmp_path):
     assert tree_digest(out) == before
 
 
-def test_resume_after_sigkill_gives_identical_output(data_root, tmp_path):
-    reference = tmp_path / "reference"
-    run_build(data_root, str(reference), build_params())
+def test_resume_after_sigkill_gives_identical_output(synthetic_root, reference_build, tmp_path):
     out = tmp_path / "killed"
-    command = [sys.executable, "-m", "nuplan_occ.cli", "build", str(data_root), str(out),
+    command = [sys.executable, "-m", "nuplan_occ.cli", "build", str(synthetic_root), str(out), "--workers", "2",
                "--set", "reconstruct.method=poisson", "--set", "reconstruct.object_method=poisson"]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 300
@@ -80,12 +78,12 @@ def test_resume_after_sigkill_gives_identical_output(data_root, tmp_path):
         time.sleep(0.05)
     os.killpg(process.pid, signal.SIGKILL)
     process.wait()
+    assert process.returncode == -signal.SIGKILL
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    assert tree_digest(out) == tree_digest(reference)
+    assert tree_digest(out) == tree_digest(reference_build)
 
 
-def test_ray_executor_matches_local(data_root, tmp_path):
-    local, distributed = tmp_path / "local", tmp_path / "ray"
-    run_build(data_root, str(local), build_params())
-    run_build(data_root, str(distributed), build_params(), executor="ray", workers=2)
-    assert tree_digest(distributed) == tree_digest(local)
+def test_ray_executor_matches_local(synthetic_root, reference_build, tmp_path):
+    distributed = tmp_path / "ray"
+    run_build(synthetic_root, str(distributed), build_params(), executor="ray", workers=2)
+    assert tree_digest(distributed) == tree_digest(reference_build)

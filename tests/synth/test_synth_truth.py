@@ -10,6 +10,7 @@ from shapely.geometry import box
 
 from nuplan_occ.grid import DEFAULT_GRID as GRID
 from nuplan_occ.labels import OTHER_GROUND, ROAD, ROAD_LINE
+from nuplan_occ.synth.agents import mesh_template, shape_parts
 from nuplan_occ.synth.lidar import T_EGO_FROM_LIDAR, sweep_at
 from nuplan_occ.synth.presets import SynthOptions, get_preset
 from nuplan_occ.synth.truth import semantic_truth, truth_for_frame
@@ -37,31 +38,51 @@ def _to_ego(world, T_global_from_ego, xy_local):
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1), np.arctan2(s, c), T[2, 3]
 
 
-def test_box_object_fills_exactly_its_box(world, frame):
+def _part_voxels(xy: np.ndarray, rel_yaw: float, z_center: float, lo: np.ndarray, hi: np.ndarray) -> set:
+    """Voxels (i, j, k) of the grid that a solid cuboid part [lo, hi] (box frame) of a box at ego xy, yaw
+    rel_yaw and centre height z_center intersects (shapely polygons against voxel squares, z by index)."""
+    u, v = np.array([np.cos(rel_yaw), np.sin(rel_yaw)]), np.array([-np.sin(rel_yaw), np.cos(rel_yaw)])
+    poly = shapely.Polygon([xy + a * u + b * v for a, b in ((lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1]))])
+    x0, y0, x1, y1 = poly.bounds
+    cols = [(i, j) for i in range(int(np.floor((x0 - GRID.x_min) / 0.25)), int(np.floor((x1 - GRID.x_min) / 0.25)) + 1)
+            for j in range(int(np.floor((y0 - GRID.y_min) / 0.25)), int(np.floor((y1 - GRID.y_min) / 0.25)) + 1)
+            if poly.intersects(box(GRID.x_min + i * 0.25, GRID.y_min + j * 0.25, GRID.x_min + (i + 1) * 0.25, GRID.y_min + (j + 1) * 0.25))]
+    k0 = int(np.floor((z_center + lo[2] - GRID.z_min) / 0.25))
+    k1 = min(int(np.floor((z_center + hi[2] - GRID.z_min) / 0.25)), GRID.shape[2] - 1)
+    return {(i, j, k) for i, j in cols for k in range(k0, k1 + 1)}
+
+
+def test_box_object_fills_exactly_its_parts(world, frame):
     t_us, T, truth = frame
     t = float(world.seconds(t_us))
-    checked = 0
-    ii, jj = np.meshgrid(np.arange(GRID.shape[0]), np.arange(GRID.shape[1]), indexing="ij")
+    checked, kinds = 0, set()
     for agent in world.agents:
         center, yaw, _ = agent.state(np.array([t]))
         xy, ego_yaw, ego_z = _to_ego(world, T, center[0, :2])
         if np.max(np.abs(xy)) > 40:
             continue
-        L, W, H = agent.size
-        rel = yaw[0] - ego_yaw
-        u, v = np.array([np.cos(rel), np.sin(rel)]), np.array([-np.sin(rel), np.cos(rel)])
-        poly = shapely.Polygon([xy + a * L / 2 * u + b * W / 2 * v for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
-        near = (np.abs(GRID.x_min + (ii + 0.5) * 0.25 - xy[0]) < 6) & (np.abs(GRID.y_min + (jj + 0.5) * 0.25 - xy[1]) < 6)
-        cols = [(i, j) for i, j in zip(ii[near], jj[near])
-                if poly.intersects(box(GRID.x_min + i * 0.25, GRID.y_min + j * 0.25, GRID.x_min + (i + 1) * 0.25, GRID.y_min + (j + 1) * 0.25))]
-        z0, z1 = center[0, 2] - ego_z - H / 2, center[0, 2] - ego_z + H / 2
-        k0, k1 = int(np.floor((z0 - GRID.z_min) / 0.25)), min(int(np.floor((z1 - GRID.z_min) / 0.25)), GRID.shape[2] - 1)
-        expected = {(i, j, k) for i, j in cols for k in range(k0, k1 + 1)}
+        parts = shape_parts(agent.category, agent.size)
+        assert np.all(parts[:, 0] >= -agent.size / 2 - 1e-12) and np.all(parts[:, 1] <= agent.size / 2 + 1e-12)
+        expected = set().union(*(_part_voxels(xy, yaw[0] - ego_yaw, center[0, 2] - ego_z, lo, hi) for lo, hi in parts))
         got = {tuple(int(v) for v in idx) for idx in np.argwhere(truth["instance"] == agent.instance)}
         assert got == expected, (agent.category, agent.instance)
         assert np.all(truth["semantics"][truth["instance"] == agent.instance] == agent.label)
         checked += 1
-    assert checked >= 5
+        kinds.add(agent.category)
+    assert checked >= 5 and "vehicle" in kinds
+
+
+def test_vehicle_truth_is_not_its_box():
+    """A vehicle's solid is body + cabin + wheels: the space under the body between the wheels and beside
+    the cabin is empty, and the mesh is the parts' surfaces."""
+    size = np.array([4.5, 2.0, 1.6])
+    parts = shape_parts("vehicle", size)
+    inside = lambda p: bool(np.any(np.all((parts[:, 0] <= p) & (p <= parts[:, 1]), axis=1)))
+    assert inside(np.array([0.0, 0.0, 0.0])) and not inside(np.array([0.0, 0.0, -0.75]))
+    assert not inside(np.array([2.0, 0.95, 0.75])) and inside(np.array([0.0, 0.0, 0.75]))
+    tris = mesh_template("vehicle", size)
+    assert tris.shape == (12 * len(parts), 3, 3)
+    assert np.all(tris >= -size / 2 - 1e-12) and np.all(tris <= size / 2 + 1e-12)
 
 
 def test_ground_is_one_layer_at_ground_height(frame):
