@@ -63,3 +63,12 @@ def test_dataset_exposes_grid_labels_and_metadata(built):
     assert set(ds.labels) == set(LABELS.names)
     assert ds.metadata["params"] == {"name": "read-test"}
     np.testing.assert_array_equal(ds[1]["ego_to_global"], built[1][2].ego_to_global)
+
+
+def test_top_level_open_dataset_is_the_same_reader(built):
+    import nuplan_occ
+
+    root, records = built
+    ds = nuplan_occ.open_dataset(root)
+    assert len(ds) == len(open_dataset(root)) == sum(r.status == "ok" for r in records)
+    assert np.array_equal(ds[0]["semantics"], open_dataset(root)[0]["semantics"])
