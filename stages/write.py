@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.pipeline.frame_columns import agent_speed_columns, ego_speeds, point_coverage
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.storage import DatasetWriter, FrameRecord
@@ -27,7 +28,7 @@ class WriteParams:
 def frame_columns(scene, position: int, registration, speeds, outliers: int, map_status: str) -> dict:
     """Filter columns and QA figures of one frame."""
     sweep = scene.sweeps[position]
-    correction = registration.corrections[position]
+    correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
     columns = {
         "ego_speed": float(speeds[position]),
         **agent_speed_columns(sweep.boxes_global),
