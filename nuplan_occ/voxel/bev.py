@@ -7,8 +7,8 @@ shapely's vectorized predicates (no per-cell Python loop):
   surface and are included.
 - ROAD_LINE: painted lines = `boundaries` linestrings and the outlines of `stop_polygons` (a thin stop
   polygon's outline is its stop line; a deep one gives its front and back edges, one being the painted
-  line). A cell is a line cell if the line buffered to half the painted width covers its centre, OR the
-  line itself passes through the cell's square (so lines thinner than a cell never vanish).
+  line). A cell is a line cell if its square overlaps the painted strip (the line buffered to half the
+  painted width, flat caps), so lines thinner than a cell never vanish and a strip is never narrowed.
 - OTHER_GROUND: every other column (walkways, verges, unmapped ground).
 Line beats road beats other ground.
 """
@@ -73,24 +73,22 @@ def _geometries_near(layers: dict[str, MapLayer], names: tuple[str, ...], area: 
 
 def _line_cells(lines: shapely.Geometry, gx: np.ndarray, gy: np.ndarray, T_global_from_ego: np.ndarray,
                 grid: GridSpec, width_m: float) -> np.ndarray:
-    """(X, Y) bool: cell centre within width/2 of the lines, or the lines cross the cell's square."""
+    """(X, Y) bool: the cell's square overlaps the painted strip (lines buffered to half the painted width,
+    flat caps; a zero width means the line itself)."""
     s = grid.voxel_size
     out = np.zeros(gx.shape, dtype=bool)
-    if width_m > 0:
-        painted = shapely.buffer(lines, width_m / 2.0)
-        shapely.prepare(painted)
-        out = shapely.intersects_xy(painted, gx, gy)
-    reach = shapely.buffer(lines, s * np.sqrt(0.5) + 1e-6)  # cells the line may cross
+    reach = shapely.buffer(lines, width_m / 2.0 + s * np.sqrt(0.5) + 1e-6)  # centres of cells that may overlap
     shapely.prepare(reach)
-    near = np.argwhere(shapely.intersects_xy(reach, gx, gy) & ~out)
+    near = np.argwhere(shapely.intersects_xy(reach, gx, gy))
     if len(near):
         T = np.asarray(T_global_from_ego, dtype=np.float64)
         lo = np.array([grid.x_min, grid.y_min]) + near * s
         square = np.array([[0, 0], [s, 0], [s, s], [0, s]])
         corners = (lo[:, None, :] + square[None]) @ T[:2, :2].T + T[:2, 3]
         cells = shapely.polygons(corners)
-        shapely.prepare(lines)
-        out[near[:, 0], near[:, 1]] = shapely.intersects(cells, lines)
+        painted = shapely.buffer(lines, width_m / 2.0, cap_style="flat") if width_m > 0 else lines
+        shapely.prepare(painted)
+        out[near[:, 0], near[:, 1]] = shapely.intersects(cells, painted)
     return out
 
 
