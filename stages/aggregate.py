@@ -1,4 +1,5 @@
-"""Stage 4, aggregate (FBSA): the scene's background in one scene-local frame with the refined poses;
+"""Stage 4, aggregate (FBSA): the scene's background in one scene-local frame with the refined poses,
+cropped to the output frames' grids plus a margin;
 each track's foreground accumulated in its box frame (rigid classes over the whole scene, pedestrians
 over a short window around each frame). Per-point sensor origins are kept for normal orientation.
 For space carving, the background rays of each frame that cross a rigid track's box are kept in that
@@ -17,15 +18,20 @@ import numpy as np
 
 from nuplan_occ.fbsa.aggregate import aggregate_background, aggregate_objects
 from nuplan_occ.fbsa.carve import segments_through_box
+from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
 
 
 @dataclass(frozen=True)
 class AggregateParams:
     """voxel_downsample_m: thin the background aggregate to one point per cube of this edge (0 = keep all).
+    crop_margin_m: keep only background points within this margin of the grid of at least one output frame
+    (x, y, z box of DEFAULT_GRID in the frame's refined ego frame); negative = keep all. Points beyond every
+    output grid only cost reconstruction time; the margin gives the solver context at the grid's edges.
     rigid_categories: classes aggregated over the whole scene; others use a window of frames."""
 
     voxel_downsample_m: float = 0.05
+    crop_margin_m: float = 5.0
     rigid_categories: tuple[str, ...] = ("vehicle", "bicycle", "traffic_cone", "barrier", "czone_sign", "generic_object")
 
 
@@ -33,12 +39,17 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     scene = inputs["scene"]
     ok = scene.ok_indices()
     poses = inputs["registration"].poses
+    outputs = [i for i in ok if scene.sweeps[i].is_output]
+    crop = None
+    if params.crop_margin_m >= 0 and outputs:
+        crop = (poses[outputs], DEFAULT_GRID.lower - params.crop_margin_m, DEFAULT_GRID.upper + params.crop_margin_m)
     background = aggregate_background(
         [inputs["background"][i] for i in ok],
         np.repeat(scene.sensor_origin_ego[None], len(ok), axis=0),
         poses[ok],
         T_global_from_scene=poses[ok[0]] if ok else None,
         voxel_downsample_m=params.voxel_downsample_m or None,
+        crop=crop,
     )
     objects = aggregate_objects([inputs["splits"][i] for i in ok], [scene.sweeps[i].boxes for i in ok],
                                 rigid_categories=params.rigid_categories)

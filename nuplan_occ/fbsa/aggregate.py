@@ -38,18 +38,32 @@ def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.sort(first)
 
 
+def within_boxes(points: np.ndarray, T_box_from_points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """(N,) bool: whether each point (N, 3) lies in [lower, upper) (3,) m of at least one of the K axis-aligned
+    boxes, box k being given in its own frame with T_box_from_points (K, 4, 4) from the points' frame."""
+    keep = np.zeros(len(points), dtype=bool)
+    for T in np.asarray(T_box_from_points, dtype=np.float64).reshape(-1, 4, 4):
+        local = transform_points(T, points)
+        keep |= np.all((local >= lower) & (local < upper), axis=1)
+    return keep
+
+
 def aggregate_background(
     clouds_ego: list[np.ndarray],
     sensor_origins_ego: np.ndarray,
     poses: np.ndarray,
     T_global_from_scene: np.ndarray | None = None,
     voxel_downsample_m: float | None = None,
+    crop: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> BackgroundAggregate:
     """Background points of all frames in the scene frame.
 
     clouds_ego: F arrays (n_i, 3), frame i's background in its ego frame; sensor_origins_ego (F, 3): frame i's
-    sensor origin in its ego frame; poses (F, 4, 4): T_global_from_ego (refined). voxel_downsample_m: if set, keep
-    only the first point (earliest frame) of every voxel of that size, with its own sensor origin and frame id.
+    sensor origin in its ego frame; poses (F, 4, 4): T_global_from_ego (refined). crop = (crop_poses (K, 4, 4)
+    T_global_from_ego, lower (3,), upper (3,) m): if set, keep only the points inside [lower, upper) of the ego
+    frame of at least one crop pose (e.g. the output frames' grids plus a margin), before any downsampling.
+    voxel_downsample_m: if set, keep only the first point (earliest frame) of every voxel of that size, with its
+    own sensor origin and frame id.
     """
     poses = np.asarray(poses, dtype=np.float64)
     origins = np.asarray(sensor_origins_ego, dtype=np.float64)
@@ -62,9 +76,13 @@ def aggregate_background(
     T_gs = poses[0] if T_global_from_scene is None and F else np.asarray(
         np.eye(4) if T_global_from_scene is None else T_global_from_scene, dtype=np.float64)
     scene_from_global = invert_transform(T_gs)
+    if crop is not None:
+        crop_from_global = np.stack([invert_transform(T) for T in np.asarray(crop[0], np.float64).reshape(-1, 4, 4)])
     points, sensors, ids = [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros(0, np.int32)]
     for i, cloud in enumerate(clouds_ego):
         T = scene_from_global @ poses[i]
+        if crop is not None:
+            cloud = cloud[within_boxes(cloud, crop_from_global @ poses[i], crop[1], crop[2])]
         pts = transform_points(T, cloud)
         points.append(pts)
         sensors.append(np.repeat(transform_points(T, origins[i][None]), len(pts), axis=0))

@@ -19,6 +19,10 @@ from nuplan_occ.recon.params import ReconError
 
 MAX_INDEX_VOLUME = 1 << 28
 """Largest dense index volume (entries) of one level; larger inputs must be chunked or cropped."""
+PADDING = 4
+"""Voxels of index volume around a level's voxels: covers the 27-stencils of the solver's queries (at
+most one voxel beyond the data at level 0) and of mesh extraction (band of 2 voxels, cell corners), so
+that lookups take the fast path of `LevelGrid.ids`."""
 
 
 @dataclass
@@ -34,9 +38,16 @@ class LevelGrid:
     volume: torch.Tensor
 
     def ids(self, ijk: torch.Tensor) -> torch.Tensor:
-        """Global coefficient ids of voxel coordinates ijk (..., 3) int64; -1 where absent."""
+        """Global coefficient ids of voxel coordinates ijk (..., 3) int64; -1 where absent.
+
+        When every query lies inside the index volume (the usual case, thanks to its padding) the ids
+        are one gather at linear indices; otherwise out-of-volume queries are masked first."""
         rel = ijk - self.lo
         shape = torch.tensor(self.volume.shape)
+        flat = rel.reshape(-1, 3)
+        if len(flat) and bool((flat.amin(dim=0) >= 0).all()) and bool((flat.amax(dim=0) < shape).all()):
+            linear = (rel[..., 0] * shape[1] + rel[..., 1]) * shape[2] + rel[..., 2]
+            return self.volume.reshape(-1)[linear].to(torch.int64)
         inside = ((rel >= 0) & (rel < shape)).all(dim=-1)
         rel = torch.where(inside.unsqueeze(-1), rel, torch.zeros_like(rel))
         found = self.volume[rel[..., 0], rel[..., 1], rel[..., 2]].to(torch.int64)
@@ -65,8 +76,8 @@ def dilate(coords: torch.Tensor, times: int = 1) -> torch.Tensor:
 
 
 def _level(coords: torch.Tensor, size: int, offset: int) -> LevelGrid:
-    lo = coords.min(dim=0).values - 2
-    extent = coords.max(dim=0).values + 3 - lo
+    lo = coords.min(dim=0).values - PADDING
+    extent = coords.max(dim=0).values + PADDING + 1 - lo
     if int(extent.prod()) > MAX_INDEX_VOLUME:
         raise ReconError(
             f"voxel hierarchy: level of voxel size {size} spans {extent.tolist()} voxels; "

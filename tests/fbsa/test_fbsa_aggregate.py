@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nuplan_occ.fbsa import FbsaInputError
-from nuplan_occ.fbsa.aggregate import aggregate_background, aggregate_objects
+from nuplan_occ.fbsa.aggregate import aggregate_background, aggregate_objects, within_boxes
 from nuplan_occ.fbsa.split import FrameSplit
 from nuplan_occ.geometry import invert_transform, make_transform, rotation_from_euler, transform_points
 from nuplan_occ.io.types import Boxes, PointCloud
@@ -50,6 +50,26 @@ def _boxes(tokens: list[str], categories: list[str], lengths: list[float]) -> Bo
     k = len(tokens)
     sizes = np.array([[length, 2.0, 1.5] for length in lengths]).reshape(k, 3)
     return Boxes("ego", np.zeros((k, 3)), sizes, np.zeros(k), np.zeros((k, 3)), categories, tokens, tokens)
+
+
+def test_background_crop_keeps_points_inside_some_frame_box():
+    rng = np.random.default_rng(1)
+    world = rng.uniform(-40, 40, (2000, 3)) + [664000.0, 3997000.0, 12.0]
+    poses = _poses(3)
+    clouds = [transform_points(invert_transform(T), world) for T in poses]
+    origins = np.zeros((3, 3))
+    lower, upper = np.array([-10.0, -5.0, -2.0]), np.array([10.0, 5.0, 3.0])
+    crop_poses = poses[[0, 2]]
+    agg = aggregate_background(clouds, origins, poses, crop=(crop_poses, lower, upper))
+    inside = np.zeros(len(world), dtype=bool)  # the truth, point by point and frame by frame
+    for T in crop_poses:
+        for j, local in enumerate(transform_points(invert_transform(T), world)):
+            inside[j] |= bool(np.all(local >= lower) and np.all(local < upper))
+    assert 0 < inside.sum() < len(world)
+    np.testing.assert_array_equal(within_boxes(world, np.stack([invert_transform(T) for T in crop_poses]), lower, upper),
+                                  inside)
+    np.testing.assert_allclose(transform_points(poses[0], agg.points), np.vstack([world[inside]] * 3), atol=1e-6)
+    assert np.array_equal(agg.frame_ids, np.repeat(np.arange(3), inside.sum()).astype(np.int32))
 
 
 def test_objects_keep_their_frames_and_rigidity():

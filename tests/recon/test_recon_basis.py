@@ -69,3 +69,14 @@ def test_jacobi_pcg_matches_direct_solve():
                         torch.from_numpy(rhs), 1e-10, 1000)
     assert result.relative_residual <= 1e-10
     assert np.allclose(result.x.numpy(), expected, atol=1e-8)
+
+
+def test_lookup_inside_and_beyond_the_index_volume_agree_with_a_dictionary():
+    rng = np.random.default_rng(3)
+    occupied = unique_voxels(torch.from_numpy(rng.integers(0, 12, (60, 3))))[0]
+    level0 = VoxelHierarchy.build(occupied, 1).levels[0]
+    truth = {tuple(c): i for i, c in enumerate(occupied.tolist())}
+    near = torch.from_numpy(rng.integers(-3, 15, (200, 3)))  # inside the padded volume: one gather
+    far = torch.cat([near, torch.tensor([[-40, 0, 0], [0, 90, 0]])])  # some beyond it: masked lookups
+    for queries in (near, far):
+        assert level0.ids(queries).tolist() == [truth.get(tuple(q), -1) for q in queries.tolist()]
