@@ -38,6 +38,7 @@ def build(
     config: Optional[Path] = typer.Option(None, help="JSON/TOML file of {stage: {param: value}} overrides."),
     set_option: List[str] = typer.Option([], "--set", help="STAGE.PARAM=VALUE override; repeatable."),
     strict: bool = typer.Option(False, help="Exit non-zero if any frame failed."),
+    work_dir: Optional[Path] = typer.Option(None, help="Stage cache (default OUT/work, or a local cache folder for URLs)."),
 ) -> None:
     """Build the occupancy dataset; rerunning skips finished work."""
     from nuplan_occ.pipeline.build import run_build
@@ -47,7 +48,8 @@ def build(
     with BuildProgress(console) as progress:
         summary = run_build(data_root, out, params, split=split or None, log_names=log or None,
                             maps_root=str(maps_root) if maps_root else None, workers=workers, executor=executor,
-                            ray_address=ray_address, on_plan=progress.on_plan, on_event=progress.on_event)
+                            ray_address=ray_address, work_root=work_dir, on_plan=progress.on_plan,
+                            on_event=progress.on_event)
     console.print(summary_table(summary))
     if summary.frames_built == 0 or (strict and summary.frames_failed):
         raise typer.Exit(code=1)

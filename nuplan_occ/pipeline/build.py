@@ -115,14 +115,16 @@ def params_metadata(params: dict[str, Any]) -> dict[str, Any]:
 def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str | None = "mini",
               log_names: list[str] | None = None, db_paths: list[str] | None = None, maps_root: str | None = None,
               workers: int = 1, executor: str = "local", ray_address: str | None = None,
+              work_root: Path | None = None,
               on_plan: Callable[[list[SceneTask]], None] | None = None,
               on_event: Callable[[tuple[str, str, str]], None] | None = None,
               commit_every_s: float = 10.0) -> BuildSummary:
-    """Build the dataset at `out` from the logs under `data_root`; returns the summary."""
+    """Build the dataset at `out` from the logs under `data_root`; returns the summary. work_root: where
+    stage outputs are cached (default: see `default_work_root`)."""
     started = time.perf_counter()
     logs = resolve_logs(data_root, split=split, log_names=log_names, db_paths=db_paths)
     maps = maps_root_for(data_root, maps_root)
-    tasks = plan_tasks(logs, Path(data_root), maps, out, default_work_root(out), params)
+    tasks = plan_tasks(logs, Path(data_root), maps, out, Path(work_root) if work_root else default_work_root(out), params)
     if on_plan:
         on_plan(tasks)
     writer = DatasetWriter(out, metadata={"params": params_metadata(params), "software": f"nuplan-occ {__version__}"})

@@ -87,3 +87,16 @@ def test_ray_executor_matches_local(synthetic_root, reference_build, tmp_path):
     distributed = tmp_path / "ray"
     run_build(synthetic_root, str(distributed), build_params(), executor="ray", workers=2)
     assert tree_digest(distributed) == tree_digest(reference_build)
+
+
+def test_build_to_an_fsspec_url_matches_the_local_build(synthetic_root, reference_build):
+    import fsspec
+
+    url = "memory://nuplan-occ-test/out"
+    run_build(synthetic_root, url, build_params(), work_root=reference_build / "work")
+    fs = fsspec.filesystem("memory")
+    local = {k: v for k, v in tree_digest(reference_build).items()}
+    remote = {path.split("/out/", 1)[1]: hashlib.sha256(fs.cat_file(path)).hexdigest()
+              for path in fs.find("/nuplan-occ-test/out")}
+    assert remote == local
+    assert len(open_dataset(url)) == len(open_dataset(str(reference_build)))
