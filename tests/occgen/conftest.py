@@ -1,22 +1,13 @@
-"""Fixtures of the occgen tests: one torch thread, a small synthetic dataset (64 x 64 x 8 cells)."""
+"""Fixtures of the occgen tests: a small synthetic dataset (64 x 64 x 8 cells)."""
 
 from __future__ import annotations
 
 import pytest
-import torch
 
 from nuplan_occ.grid import GridSpec
 from occgen.bench import make_synthetic_dataset
 
 SMALL_GRID = GridSpec(x_min=-8.0, x_max=8.0, y_min=-8.0, y_max=8.0, z_min=-1.0, z_max=1.0)
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")

@@ -1,15 +1,9 @@
 import numpy as np
 import pytest
-import torch
 
 from nuplan_occ.grid import GridSpec
 
 SMALL_GRID = GridSpec(-16.0, 16.0, -16.0, 16.0, -3.0, 5.0, 0.25)
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    torch.set_num_threads(1)
 
 
 @pytest.fixture

@@ -1,19 +1,9 @@
-"""Shared fixtures of the reconstruction tests: torch threads and noisy analytic shapes
+"""Shared fixtures of the reconstruction tests: noisy analytic shapes
 (all points and origins in a local "scene" frame, metres)."""
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
-import torch
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 def plane_scan(rng: np.random.Generator, size: float = 6.0, n: int = 20000, noise: float = 0.01,
