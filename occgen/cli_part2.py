@@ -51,7 +51,7 @@ def render_maps_cmd(
 def lidar_train_cmd(
     out: str = typer.Argument(..., help="dataset root"),
     ckpt: str = typer.Option(..., help="checkpoint file to write"),
-    steps: int = typer.Option(200),
+    steps: int = typer.Option(3000),
     density: float = typer.Option(0.25, help="azimuth density of the training rig"),
 ) -> None:
     """Train the learned LiDAR model on the stand-in real sensor of every dataset frame."""

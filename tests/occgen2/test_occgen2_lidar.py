@@ -6,6 +6,7 @@ from nuplan_occ.io.pcd import read_pcd
 from nuplan_occ.labels import BARRIER
 from occgen.lidar_metrics import SweepSetError, bev_histogram, chamfer, eval_lidar, jsd, mmd
 from occgen.lidar_model import LidarModel, LidarModelConfig, generate, load_checkpoint, make_frame, save_checkpoint, train
+from occgen.lidar_sampling import GROUPS, first_hit_pdf, occupancy_prior_samples, point_cues
 from occgen.lidar_raycast import (SensorEffects, VoxelRaycaster, default_lidar_rig, raycast_sweep, scan, write_sweep)
 from occgen.video_cond import load_local_state
 
@@ -73,6 +74,9 @@ def test_learned_lidar_model_trains_and_generates(tmp_path, small_grid, street):
     assert len(cloud) > 100 and set(np.unique(cloud.lidar_info)) <= {0, 1, 2, 3, 4}
     ranges = np.linalg.norm(cloud.xyz - np.array([rig[i].position_ego for i in cloud.lidar_info]), axis=1)
     assert ranges.min() >= 1.0 and ranges.max() <= 40.0
+    with torch.no_grad():
+        again.head[-1].bias[1] = 30.0  # drop probability ~1: every ray is dropped
+    assert len(generate(again, street, small_grid, rig)) == 0
     with pytest.raises(ValueError):
         load_local_state("https://example.com/m.pt")
 
@@ -82,3 +86,31 @@ def test_adaln_zero_blocks_start_as_identity():
     x = torch.randn(1, 16, 4, 4, 2)
     f_r = model.rig_embedding(torch.randn(5, 3), torch.tensor([True, False, True, False, False]))
     assert torch.equal(model.blocks[0](x, f_r), x)
+
+
+def test_occupancy_prior_samples_gather_at_the_visible_surface(small_grid):
+    sem = np.zeros(small_grid.shape, np.uint8)
+    sem[100, :, :] = BARRIER  # wall face at x = 9.0 m
+    sem[110, :, :] = BARRIER  # a second wall behind it, hidden
+    labels = torch.from_numpy(sem)
+    o = torch.tensor([[1.0, 0.0, 0.1], [1.0, 0.0, 0.1]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])  # towards the wall; away from it (a miss)
+    s, free = occupancy_prior_samples(labels, small_grid, o, d, 32, 1.0, 40.0, 0.125, 2, 2, 0.25, jitter=False)
+    assert torch.all(s[:, 1:] >= s[:, :-1]) and s.min() >= 1.0 and s.max() <= 40.0
+    near = ((s[0] >= 7.625 - 1e-4) & (s[0] <= 8.25 + 1e-4)).float().mean()
+    assert near >= 0.7  # surface at s = 8 m, first occupied march point; 75 % of the samples in 7.625..8.25
+    assert (s[0] < 8.0).any() and (s[0] > 8.0).any()  # bracketed
+    assert float(free[0]) == pytest.approx(7.875) and float(free[1]) == 40.0
+    assert torch.allclose(torch.diff(s[1]), torch.full((31,), 39.0 / 32), atol=1e-3)  # uniform on a miss
+    pdf = first_hit_pdf(torch.tensor([3, 6]), 6, 1, 0, 0.1)
+    assert torch.equal(pdf[0], torch.tensor([0.1, 0.1, 1.0, 1.0, 0.1, 0.1])) and torch.all(pdf[1] == 1.0)
+
+
+def test_point_cues_read_the_voxel_under_the_point(small_grid, street):
+    labels = torch.from_numpy(street)
+    pts = torch.tensor([[9.1, 0.0, 0.0], [0.0, 0.0, -0.4], [50.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
+    cues = point_cues(labels, small_grid, pts)
+    assert torch.equal(cues[0, :5], GROUPS[6]) and torch.equal(cues[1, :5], GROUPS[12])
+    assert torch.all(cues[2:, :5] == 0)  # outside the grid / free
+    assert cues[1, :5].tolist() == [1.0, 1.0, 0.0, 0.0, 0.0]  # road: occupied, ground
+    assert cues[0, 5] == pytest.approx((0.1 / 0.25) * 2 - 1, abs=1e-5)  # x = 9.1 m lies 0.4 into its voxel
