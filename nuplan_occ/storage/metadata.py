@@ -16,7 +16,7 @@ from nuplan_occ.storage.errors import DatasetFormatError, InvalidFrameError
 from nuplan_occ.storage.fsio import resolve
 
 FORMAT_NAME = "nuplan-occ-tar-shards"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 METADATA_NAME = "dataset.json"
 LAYOUT = {
     "manifest": "manifest.parquet (one row per frame; a frame exists iff its row is here)",

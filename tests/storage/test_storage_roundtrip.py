@@ -89,11 +89,11 @@ def test_shard_members_follow_webdataset_naming(tmp_path):
             assert info.mtime == 0 and info.uid == 0 and info.uname == ""
     keys = {name.split(".", 1)[0] for name in names}
     assert keys == {r["key"] for r in rows} == {f"{LOG.replace('.', '_')}-{i:06d}" for i in range(3)}
-    assert {name.split(".", 1)[1] for name in names} == {"sem.zst", "mask_lidar.bits.zst", "json"}
+    assert {name.split(".", 1)[1] for name in names} == {"sem.zst", "mask_lidar.bits.xz", "json"}
     # each sample's members are contiguous, as WebDataset needs
     assert [name.split(".", 1)[0] for name in names] == sorted(name.split(".", 1)[0] for name in names)
     assert meta["token"] == records[1].token and meta["columns"]["ego_speed"] == 5.0
-    assert meta["members"] == {"mask_lidar": "mask_lidar.bits.zst", "semantics": "sem.zst"}
+    assert meta["members"] == {"mask_lidar": "mask_lidar.bits.xz", "semantics": "sem.zst"}
 
 
 @pytest.mark.parametrize("scheme", ["memory", "file"])

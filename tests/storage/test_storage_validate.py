@@ -37,7 +37,7 @@ def test_real_output_validates_against_json_schemas(root):
     for row in rows:
         jsonschema.validate(row, schemas.load("manifest"))
     assert {row["status"] for row in rows} == {"ok", "failed"}
-    assert metadata["grid"]["shape"] == [32, 32, 8] and metadata["members"]["semantics"]["zstd_level"] == 9
+    assert metadata["grid"]["shape"] == [32, 32, 8] and metadata["members"]["semantics"]["level"] == 9
 
 
 def test_manifest_schema_lists_every_column():
