@@ -77,8 +77,8 @@ def scene_artifacts(data_root: Path, out: Path) -> list[dict[str, Any]]:
 
     params = default_params(PIPELINE)
     tasks = plan_tasks(resolve_logs(data_root), data_root, data_root / "maps", str(out), default_work_root(str(out)), params)
-    wanted = ("scene", "registration", "semantics", "grids", "background_surface", "background_aggregate",
-              "objects", "object_surfaces")
+    wanted = ("scene", "registration", "object_boxes", "semantics", "grids", "background_surface",
+              "background_aggregate", "objects", "object_surfaces")
     return [run_stages(task, PIPELINE, wanted) for task in tasks]
 
 
@@ -118,7 +118,7 @@ def paper_method_frame(artifacts: dict, token: str, position: int, layers) -> np
     faces = [surface.faces]
     offset = len(surface.vertices)
     ok_position = {p: i for i, p in enumerate(scene.ok_indices())}
-    objects = placed_objects(scene, position, ok_position[position], invert_transform(pose), artifacts["objects"],
+    objects = placed_objects(scene, artifacts["object_boxes"][position], ok_position[position], artifacts["objects"],
                              artifacts["object_surfaces"], {}, 2)  # the paper meshes objects: no carved solids
     for obj in objects:
         posed = obj.vertices @ yaw_matrix(obj.yaw).T + obj.center

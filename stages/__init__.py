@@ -1,16 +1,17 @@
 """The build DAG, top to bottom. Each module declares one Stage: inputs, outputs, typed params, and the
 pure functions of `nuplan_occ` it calls.
 
-    load -> split -> filter -> register -> aggregate -> reconstruct -> voxelize -> label -> visibility -> write
+    load -> split -> filter -> register -> track -> aggregate -> reconstruct -> voxelize -> label -> visibility -> write
 """
 
-from stages import aggregate, filter, label, load, reconstruct, register, split, visibility, voxelize, write
+from stages import aggregate, filter, label, load, reconstruct, register, split, track, visibility, voxelize, write
 
 PIPELINE = [
     load.STAGE,
     split.STAGE,
     filter.STAGE,
     register.STAGE,
+    track.STAGE,
     aggregate.STAGE,
     reconstruct.STAGE,
     voxelize.STAGE,

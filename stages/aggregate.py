@@ -1,25 +1,26 @@
-"""Stage 4, aggregate (FBSA): the scene's background in one scene-local frame with the refined poses,
+"""Stage 5, aggregate (FBSA): the scene's background in one scene-local frame with the refined poses,
 cropped to the output frames' grids plus a margin, with dynamic points removed by free-space evidence
 (points that at least `dynamic_min_votes` sweeps' rays passed through, see nuplan_occ.fbsa.dynamic);
-each track's foreground accumulated in its box frame (rigid classes over the whole scene, pedestrians
-over a short window around each frame). Per-point sensor origins are kept for normal orientation.
+each track's points (from the track stage: taken inside its corrected boxes, in its corrected box
+frame) accumulated (rigid classes over the whole scene, pedestrians over a short window around each frame). Per-point sensor origins are kept for normal orientation.
 For space carving, the background rays of each frame that cross a rigid track's box are kept in that
 box's frame (they show where the object is not).
 
-Inputs: `scene`, `splits`, `background`, `registration`.
+Inputs: `scene`, `splits`, `background`, `registration`, `object_boxes`, `object_points`.
 Outputs: `background_aggregate` (BackgroundAggregate, scene frame), `objects` (track -> ObjectAggregate),
 `object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from nuplan_occ.fbsa.aggregate import BackgroundAggregate, aggregate_background, aggregate_objects
 from nuplan_occ.fbsa.carve import segments_through_box
 from nuplan_occ.fbsa.dynamic import seen_through
+from nuplan_occ.fbsa.split import outside_boxes
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
@@ -36,7 +37,11 @@ class AggregateParams:
     boxes, unboxed movers); dynamic_min_votes, dynamic_ground_clearance_m, dynamic_protect_dilation,
     dynamic_occupied_ratio: see nuplan_occ.fbsa.dynamic.seen_through (ratio 0.5 chosen by measurement on the
     bench: 0 removes more trail but also 1-3 % of static points on faces seen at grazing angles);
-    dynamic_sweep_stride: use every n-th loaded sweep's rays as evidence (one ray traversal per used sweep)."""
+    dynamic_sweep_stride: use every n-th loaded sweep's rays as evidence (one ray traversal per used sweep).
+    object_clearance_m: background points inside a corrected box grown by this much (sideways and up) are
+    dropped (negative: keep them): an object's points that its logged box missed would otherwise become
+    background, and a ghost trail where the object moves; ground_keep_m: the grown box starts this high
+    above the box's bottom, so the ground around objects stays."""
 
     voxel_downsample_m: float = 0.05
     crop_margin_m: float = 5.0
@@ -47,6 +52,8 @@ class AggregateParams:
     dynamic_protect_dilation: int = 1
     dynamic_occupied_ratio: float = 0.5
     dynamic_sweep_stride: int = 2
+    object_clearance_m: float = 0.2
+    ground_keep_m: float = 0.1
 
 
 def run(inputs: dict, params: AggregateParams) -> dict:
@@ -57,8 +64,12 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     crop = None
     if params.crop_margin_m >= 0 and outputs:
         crop = (poses[outputs], DEFAULT_GRID.lower - params.crop_margin_m, DEFAULT_GRID.upper + params.crop_margin_m)
+    clouds = [inputs["background"][i] for i in ok]
+    if params.object_clearance_m >= 0:
+        clouds = [cloud[outside_boxes(cloud, inputs["object_boxes"][i], params.object_clearance_m,
+                                      params.ground_keep_m)] for cloud, i in zip(clouds, ok)]
     background = aggregate_background(
-        [inputs["background"][i] for i in ok],
+        clouds,
         np.repeat(scene.sensor_origin_ego[None], len(ok), axis=0),
         poses[ok],
         T_global_from_scene=poses[ok[0]] if ok else None,
@@ -75,11 +86,13 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                occupied_ratio=params.dynamic_occupied_ratio)
         background = BackgroundAggregate(background.points[~dynamic], background.sensor_origins[~dynamic],
                                          background.frame_ids[~dynamic], background.T_global_from_scene)
-    objects = aggregate_objects([inputs["splits"][i] for i in ok], [scene.sweeps[i].boxes for i in ok],
+    object_splits = [replace(inputs["splits"][i], foreground={t: p for t, (p, _) in inputs["object_points"][i].items()},
+                             foreground_origins={t: o for t, (_, o) in inputs["object_points"][i].items()}) for i in ok]
+    objects = aggregate_objects(object_splits, [inputs["object_boxes"][i] for i in ok],
                                 rigid_categories=params.rigid_categories)
     through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for i in ok:
-        boxes, points = scene.sweeps[i].boxes, inputs["background"][i]
+        boxes, points = inputs["object_boxes"][i], inputs["background"][i]
         origins = np.broadcast_to(scene.sensor_origin_ego, points.shape)
         for k, track in enumerate(boxes.track_tokens):
             if track in objects and objects[track].rigid:
@@ -90,7 +103,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     return {"background_aggregate": background, "objects": objects, "object_through_rays": object_through_rays}
 
 
-STAGE = Stage("aggregate", inputs=("scene", "splits", "background", "registration"),
+STAGE = Stage("aggregate", inputs=("scene", "splits", "background", "registration", "object_boxes", "object_points"),
               outputs=("background_aggregate", "objects", "object_through_rays"), params_type=AggregateParams,
               run=run,
-              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.dynamic"), doc=__doc__ or "")
+              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split"), doc=__doc__ or "")

@@ -1,4 +1,4 @@
-"""Stage 7, label: background voxels of the ground layer (within a tolerance of the locally estimated
+"""Stage 8, label: background voxels of the ground layer (within a tolerance of the locally estimated
 ground height) take the BEV map class at that column — drivable -> road, painted lines -> road_line,
 other ground -> other_ground; background above the ground layer stays `other`; objects keep their
 box class. The BEV map is rasterized from the GPKG vector layers in each frame's (refined) ego frame.

@@ -1,4 +1,5 @@
-"""Stage 0, load: read one scene of a log (sweeps in the ego frame, boxes, logged poses, calibration).
+"""Stage 0, load: read one scene of a log (sweeps in the ego frame, boxes, logged poses, calibration),
+with context sweeps of the same log around it (aggregated, not written).
 
 Inputs: the scene task. Outputs: `scene` (SceneData). Not cached: reading is cheaper than storing.
 A sweep whose PCD is missing or corrupt is kept with its failure reason; the scene goes on without it.
@@ -12,6 +13,7 @@ from pathlib import Path
 from nuplan_occ.io.errors import NuplanFormatError
 from nuplan_occ.io.maps import find_map
 from nuplan_occ.io.reader import NuplanLog
+from nuplan_occ.io.types import LidarFrame
 from nuplan_occ.io.errors import MapError
 from nuplan_occ.pipeline.scene import SceneData, Sweep
 from nuplan_occ.pipeline.stage import Stage
@@ -19,10 +21,29 @@ from nuplan_occ.pipeline.stage import Stage
 
 @dataclass(frozen=True)
 class LoadParams:
-    """rate_hz: output frame rate; sweeps are 20 Hz, every (20 / rate_hz)-th sweep of the log is written."""
+    """rate_hz: output frame rate; sweeps are 20 Hz, every (20 / rate_hz)-th sweep of the log is written.
+    context_seconds: sweeps of the same log this long before and after the scene are loaded too (every
+    context_stride-th one) and aggregated, never written: objects and ground seen from more viewpoints, and
+    the first and last frames of a scene get context on both sides. Measured on the synthetic `small` preset
+    (0.8 s scenes of a 4 s log): ..."""
 
     rate_hz: float = 10.0
     sweep_rate_hz: float = 20.0
+    context_seconds: float = 1.0
+    context_stride: int = 2
+
+
+def context_frames(log_frames: list[LidarFrame], own: list[LidarFrame], seconds: float, stride: int) -> list[LidarFrame]:
+    """The scene's own frames plus, as context, every `stride`-th frame of the log (by log index) within
+    `seconds` before its first or after its last frame; time order."""
+    if not own or seconds <= 0:
+        return list(own)
+    first, last = own[0].timestamp_us, own[-1].timestamp_us
+    window = int(round(seconds * 1e6))
+    mine = {f.token for f in own}
+    extra = [f for f in log_frames if f.token not in mine and f.index % max(1, stride) == 0
+             and first - window <= f.timestamp_us <= last + window]
+    return sorted([*own, *extra], key=lambda f: (f.timestamp_us, f.token))
 
 
 def run(inputs: dict, params: LoadParams) -> dict:
@@ -31,7 +52,9 @@ def run(inputs: dict, params: LoadParams) -> dict:
     with NuplanLog(task.db_path, task.sensor_root) as log:
         T_ego_from_lidar = log.lidar.T_ego_from_lidar
         sweeps = []
-        for frame in log.frames_of_scene(task.scene_token):
+        own = log.frames_of_scene(task.scene_token)
+        mine = {frame.token for frame in own}
+        for frame in context_frames(log.frames, own, params.context_seconds, params.context_stride):
             pose = log.frame_pose(frame)
             boxes_global = log.boxes(frame, "global")
             boxes_ego = log.boxes(frame, "ego")
@@ -41,7 +64,7 @@ def run(inputs: dict, params: LoadParams) -> dict:
             except NuplanFormatError as exc:
                 failure = str(exc)
             sweeps.append(Sweep(frame.token, frame.index, frame.timestamp_us, pose, cloud, boxes_ego,
-                                boxes_global, frame.index % step == 0, failure))
+                                boxes_global, frame.token in mine and frame.index % step == 0, failure))
         try:
             map_path = str(find_map(Path(task.maps_root), log.meta.map_name))
         except MapError:

@@ -1,4 +1,4 @@
-"""Stage 5, reconstruct: surfaces from the aggregates with the neural-kernel-style torch solver
+"""Stage 6, reconstruct: surfaces from the aggregates with the neural-kernel-style torch solver
 (default), Open3D screened Poisson, or "none" (raw points), and solid shapes of rigid objects.
 
 The background is reconstructed in the scene frame, and a meshed background gets the ground height

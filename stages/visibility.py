@@ -1,4 +1,4 @@
-"""Stage 8, visibility: `mask_lidar` by casting the frame's own LiDAR rays through the grid (voxels
+"""Stage 9, visibility: `mask_lidar` by casting the frame's own LiDAR rays through the grid (voxels
 traversed = observed free, the return voxel = observed occupied, the rest unknown), and `mask_camera`
 from the 8 cameras' frusta with occlusion by the frame's occupancy.
 

@@ -1,11 +1,11 @@
-"""Stage 6, voxelize: per output frame, the background surface moved into the frame's ego frame
+"""Stage 7, voxelize: per output frame, the background surface moved into the frame's ego frame
 (refined pose) and each object's geometry placed by its box at that frame: its carved solid (cell
 centres, when the reconstruct stage made one), else its surface, else its raw (windowed) points;
 background inside current boxes is removed; surfaces are voxelized exactly (no holes where triangles
 exceed a voxel); solid objects are filled inside their surface. Gives instance ids (stable per log)
-and per-voxel flow.
+and per-voxel flow. Objects are placed by their corrected boxes (track stage).
 
-Inputs: `scene`, `registration`, `background_aggregate`, `background_surface`, `objects`,
+Inputs: `scene`, `registration`, `object_boxes`, `background_aggregate`, `background_surface`, `objects`,
 `object_surfaces`, `object_solids`. Outputs: `grids` (sweep token -> FrameGrids; background labeled
 OTHER here).
 """
@@ -18,6 +18,7 @@ import numpy as np
 
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
+from nuplan_occ.io.types import Boxes
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.compose import PlacedObject, compose_frame
@@ -44,12 +45,10 @@ def crop_mesh_to_grid(vertices_ego: np.ndarray, faces: np.ndarray, margin_m: flo
     return vertices_ego[used], remapped.reshape(-1, 3)
 
 
-def placed_objects(scene, position: int, ok_position: int, T_ego_from_global: np.ndarray, objects: dict,
-                   surfaces: dict, solids: dict, window: int) -> list[PlacedObject]:
-    """The sweep's boxes (moved into the refined ego frame) with their object geometry in the box frame:
-    solid cell centres (as points), else surface, else points."""
-    sweep = scene.sweeps[position]
-    boxes = sweep.boxes_global.transformed(T_ego_from_global, "ego")
+def placed_objects(scene, boxes: Boxes, ok_position: int, objects: dict, surfaces: dict, solids: dict,
+                   window: int) -> list[PlacedObject]:
+    """The sweep's boxes (in its ego frame) with their object geometry in the box frame: solid cell
+    centres (as points), else surface, else points."""
     placed = []
     for k, track in enumerate(boxes.track_tokens):
         if track in solids:
@@ -82,13 +81,13 @@ def run(inputs: dict, params: VoxelizeParams) -> dict:
         vertices, faces = crop_mesh_to_grid(
             transform_points(T_ego_from_global @ T_global_from_scene, surface.vertices), surface.faces,
             params.crop_margin_m)
-        objects = placed_objects(scene, position, ok_position[position], T_ego_from_global, inputs["objects"],
+        objects = placed_objects(scene, inputs["object_boxes"][position], ok_position[position], inputs["objects"],
                                  inputs["object_surfaces"], inputs["object_solids"], params.pedestrian_window)
         grids[sweep.token] = compose_frame(vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects)
     return {"grids": grids}
 
 
 STAGE = Stage("voxelize",
-              inputs=("scene", "registration", "background_aggregate", "background_surface", "objects", "object_surfaces",
-                      "object_solids"),
+              inputs=("scene", "registration", "object_boxes", "background_aggregate", "background_surface", "objects",
+                      "object_surfaces", "object_solids"),
               outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "")

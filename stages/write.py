@@ -1,4 +1,4 @@
-"""Stage 9, write: one tar shard per scene (semantics, masks, instance, flow per frame, zstd) published
+"""Stage 10, write: one tar shard per scene (semantics, masks, instance, flow per frame, zstd) published
 atomically, and the scene's manifest rows (identity, pose, filter columns, QA figures, status). Frames
 whose sweep failed get a row with status "failed" and the reason. The runner commits the rows.
 

@@ -7,7 +7,7 @@ centre, x along the heading, z up) for foreground points. Units: metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -142,3 +142,17 @@ def split_frame(
         foreground[token], origins[token] = local, local_origin
     background = cloud_ego.subset(~in_enlarged & ~on_ego)
     return FrameSplit(background, foreground, origins, int(shell.sum()), int(ego_only.sum()))
+
+
+def outside_boxes(points: np.ndarray, boxes: Boxes, pad_m: float, ground_keep_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) that lie outside every box grown by pad_m sideways and upward; the grown
+    box's bottom is raised to ground_keep_m above the box's bottom, so the ground around and under an
+    object is kept. points and boxes in the same frame, metres."""
+    if len(boxes) == 0:
+        return np.ones(len(points), dtype=bool)
+    sizes = np.asarray(boxes.sizes, dtype=np.float64)
+    # Bottom face up by ground_keep_m, top face up by pad_m, sides out by pad_m.
+    grown = replace(boxes,
+                    centers=np.asarray(boxes.centers, dtype=np.float64) + [0.0, 0.0, (pad_m + ground_keep_m) / 2.0],
+                    sizes=sizes + [2.0 * pad_m, 2.0 * pad_m, pad_m - ground_keep_m])
+    return points_in_boxes(points, grown) < 0

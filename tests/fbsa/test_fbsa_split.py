@@ -118,3 +118,21 @@ def test_split_rejects_wrong_frames(seq):
     with pytest.raises(FbsaInputError):
         split_frame(cloud, boxes, SENSOR_EGO[:2])
     assert len(ego_footprint_boxes(margin_m=0.3)) == 1
+
+
+def test_outside_boxes_clears_a_grown_box_but_keeps_the_ground_under_it():
+    from nuplan_occ.fbsa.split import outside_boxes
+
+    boxes = Boxes("ego", np.array([[10.0, 0.0, 0.8]]), np.array([[4.0, 2.0, 1.6]]), np.array([np.pi / 2]),
+                  np.zeros((1, 3)), ["vehicle"], ["t"], ["b"])
+    points = np.array([
+        [10.0, 0.0, 0.8],     # inside the box
+        [11.1, 0.0, 0.8],     # 0.1 m beyond a side face (box turned 90 deg: width along x)
+        [11.3, 0.0, 0.8],     # 0.3 m beyond: outside the 0.2 m clearance
+        [10.0, 0.0, 1.7],     # 0.1 m above the top
+        [10.0, 2.1, 0.05],    # ground under the box's end, 0.05 m above its bottom
+        [10.0, 2.1, 0.15],    # 0.15 m above the bottom, inside the grown end
+    ])
+    keep = outside_boxes(points, boxes, pad_m=0.2, ground_keep_m=0.1)
+    assert keep.tolist() == [False, False, True, False, True, False]
+    assert outside_boxes(points, Boxes.empty("ego"), 0.2, 0.1).all()

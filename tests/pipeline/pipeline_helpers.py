@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from nuplan_occ.pipeline.params import apply_overrides, default_params
 
-FAST_OVERRIDES = {"reconstruct": {"method": "poisson", "object_method": "poisson"}}
-"""The cheaper surface method for tests that build many times (resume, executors); the default
-method (the torch solver) is exercised by test_build_end_to_end."""
+FAST_OVERRIDES = {"reconstruct": {"method": "poisson", "object_method": "poisson"}, "load": {"context_seconds": 0.25}}
+"""The cheaper surface method and a shorter context for tests that build many times (resume, executors);
+the defaults (the torch solver, 1 s of context) are exercised by test_build_end_to_end."""
 
 
 def build_params(fast: bool = True) -> dict:

@@ -71,7 +71,8 @@ def test_build_end_to_end_default_method_with_bad_blobs(data_root, tmp_path):
 def test_resume_after_sigkill_gives_identical_output(synthetic_root, reference_build, tmp_path):
     out = tmp_path / "killed"
     command = [sys.executable, "-m", "nuplan_occ.cli", "build", str(synthetic_root), str(out), "--workers", "2",
-               "--set", "reconstruct.method=poisson", "--set", "reconstruct.object_method=poisson"]
+               "--set", "reconstruct.method=poisson", "--set", "reconstruct.object_method=poisson",
+               "--set", "load.context_seconds=0.25"]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and not list((out / "work").rglob("reconstruct/*.pkl.zst")):
