@@ -12,7 +12,8 @@ rays through its box), which the voxelize stage prefers to its surface.
 
 Inputs: `background_aggregate`, `objects`, `object_through_rays`.
 Outputs: `background_surface` (Surface, scene frame), `object_surfaces` (track -> Surface, box frame),
-`object_solids` (track -> (M, 3) centres of solid lattice cells, box frame, m).
+`object_solids` (track -> (M, 3) points sampling the solid lattice cells, box frame, m: their centres, or
+their corners for `corner_categories`).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.fbsa.carve import carve_object_solid
+from nuplan_occ.fbsa.carve import carve_object_solid, cell_corner_points
 from nuplan_occ.fbsa.ground_fill import ground_fill_mesh
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.recon import ReconParams, Surface, reconstruct
@@ -36,7 +37,10 @@ class ReconstructParams:
     chosen by measurement on the synthetic `small` preset: occupied IoU 0.70 without, 0.73 / 0.79 / 0.83
     at 3 / 6 / 10 m). carve_objects: solids of rigid objects with at least `min_carve_points` points and
     a category in `carve_categories` by space carving on a lattice of `carve_resolution_m` cells (bicycles and cones, thinner than the boxes' noise, measured better
-    without: IoU 0.58 / 0.54 with their surfaces against 0.39 / 0.44 carved)."""
+    without: IoU 0.58 / 0.54 with their surfaces against 0.39 / 0.44 carved). corner_categories: their solids
+    are given as points near every solid cell's corners instead of its centre, so the voxelizer marks
+    every voxel a cell overlaps (measured on the bench build: barrier IoU 0.65 -> 0.73, generic object
+    0.60 -> 0.70; vehicles lose with it, 0.49 -> 0.45, as the corners also grow their unobserved parts)."""
 
     method: str = "nksr"
     object_method: str = "nksr"
@@ -48,6 +52,7 @@ class ReconstructParams:
     carve_categories: tuple[str, ...] = ("vehicle", "barrier", "czone_sign", "generic_object")
     carve_resolution_m: float = 0.1
     min_carve_points: int = 1
+    corner_categories: tuple[str, ...] = ("barrier", "czone_sign", "generic_object")
 
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
@@ -65,9 +70,11 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
             continue
         carve = params.carve_objects and aggregate.category in params.carve_categories
         if carve and len(aggregate.points) >= max(params.min_carve_points, 1):
-            object_solids[track] = carve_object_solid(aggregate.points, aggregate.sensor_origins, aggregate.size,
-                                                      resolution=params.carve_resolution_m,
-                                                      through=inputs["object_through_rays"].get(track))
+            cells = carve_object_solid(aggregate.points, aggregate.sensor_origins, aggregate.size,
+                                       resolution=params.carve_resolution_m,
+                                       through=inputs["object_through_rays"].get(track))
+            object_solids[track] = (cell_corner_points(cells, aggregate.size, params.carve_resolution_m)
+                                    if aggregate.category in params.corner_categories else cells)
         if len(aggregate.points) >= params.min_object_points:
             object_surfaces[track] = reconstruct(aggregate.points, aggregate.sensor_origins,
                                                  method=params.object_method, frame="box")

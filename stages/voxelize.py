@@ -27,11 +27,19 @@ from nuplan_occ.voxel.compose import PlacedObject, compose_frame
 @dataclass(frozen=True)
 class VoxelizeParams:
     """fill_objects: fill closed object surfaces (vehicles are solid). pedestrian_window: sweeps on each
-    side whose points shape a non-rigid object at a frame. crop_margin_m: background kept beyond the grid."""
+    side whose points shape a non-rigid object at a frame. crop_margin_m: background kept beyond the grid.
+    box_fill_categories: objects filled as their (corrected) box, sampled every box_fill_spacing_m: a
+    pedestrian has ~10 points per sweep and changes shape, so its few windowed points cover less of it
+    than its box does (measured on the bench build: pedestrian IoU 0.60 with points, 0.67 boxed).
+    ground_layer_categories: their voxels in the ground layer are ground (a car's body clears the road;
+    its unobserved underside would otherwise fill the road layer; bench: vehicle IoU 0.49 -> 0.52)."""
 
     fill_objects: bool = True
     pedestrian_window: int = 2
     crop_margin_m: float = 1.0
+    box_fill_categories: tuple[str, ...] = ("pedestrian",)
+    box_fill_spacing_m: float = 0.05
+    ground_layer_categories: tuple[str, ...] = ("vehicle",)
 
 
 def crop_mesh_to_grid(vertices_ego: np.ndarray, faces: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -45,13 +53,23 @@ def crop_mesh_to_grid(vertices_ego: np.ndarray, faces: np.ndarray, margin_m: flo
     return vertices_ego[used], remapped.reshape(-1, 3)
 
 
+def box_lattice_points(size: np.ndarray, spacing_m: float) -> np.ndarray:
+    """(N, 3) points of a regular lattice filling a box [-size/2, size/2] (box frame, m), faces included,
+    at most spacing_m apart."""
+    axes = [np.linspace(-h, h, max(2, int(np.ceil(2 * h / spacing_m)) + 1)) for h in np.asarray(size, np.float64) / 2]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
 def placed_objects(scene, boxes: Boxes, ok_position: int, objects: dict, surfaces: dict, solids: dict,
-                   window: int) -> list[PlacedObject]:
-    """The sweep's boxes (in its ego frame) with their object geometry in the box frame: solid cell
-    centres (as points), else surface, else points."""
+                   window: int, box_fill_categories: tuple[str, ...] = (), box_fill_spacing_m: float = 0.05
+                   ) -> list[PlacedObject]:
+    """The sweep's boxes (in its ego frame) with their object geometry in the box frame: a box lattice
+    for box_fill_categories, else solid cell points, else surface, else points."""
     placed = []
     for k, track in enumerate(boxes.track_tokens):
-        if track in solids:
+        if boxes.categories[k] in box_fill_categories:
+            vertices, faces = box_lattice_points(boxes.sizes[k], box_fill_spacing_m), np.zeros((0, 3), dtype=np.int64)
+        elif track in solids:
             vertices, faces = solids[track], np.zeros((0, 3), dtype=np.int64)
         elif track in surfaces:
             vertices, faces = surfaces[track].vertices, surfaces[track].faces
@@ -82,8 +100,11 @@ def run(inputs: dict, params: VoxelizeParams) -> dict:
             transform_points(T_ego_from_global @ T_global_from_scene, surface.vertices), surface.faces,
             params.crop_margin_m)
         objects = placed_objects(scene, inputs["object_boxes"][position], ok_position[position], inputs["objects"],
-                                 inputs["object_surfaces"], inputs["object_solids"], params.pedestrian_window)
-        grids[sweep.token] = compose_frame(vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects)
+                                 inputs["object_surfaces"], inputs["object_solids"], params.pedestrian_window,
+                                 params.box_fill_categories, params.box_fill_spacing_m)
+        grids[sweep.token] = compose_frame(
+            vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects,
+            ground_layer_classes=tuple(LABELS.box_category_to_id[c] for c in params.ground_layer_categories))
     return {"grids": grids}
 
 

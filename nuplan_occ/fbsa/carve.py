@@ -117,3 +117,14 @@ def carve_object_solid(points_box: np.ndarray, origins_box: np.ndarray, size: np
     solid[flat_cells(points)[1]] = True
     ijk = np.stack(np.unravel_index(np.flatnonzero(solid), tuple(counts)), axis=1)
     return (ijk + 0.5) * edge - half
+
+
+def cell_corner_points(cells_box: np.ndarray, size: np.ndarray, resolution: float, inset: float = 0.05) -> np.ndarray:
+    """(8 M, 3) points near the 8 corners of each lattice cell (centres cells_box (M, 3), box frame, of the
+    lattice `lattice_shape(size, resolution)`), moved inward by `inset` of a cell edge: voxelizing them
+    marks every voxel a cell overlaps by more than that inset, where voxelizing the centres misses the
+    voxels a cell only grazes."""
+    _, edge = lattice_shape(size, resolution)
+    signs = np.array(np.meshgrid([-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0], indexing="ij")).reshape(3, -1).T
+    offsets = signs * (0.5 - inset) * edge
+    return (np.asarray(cells_box, np.float64)[:, None, :] + offsets[None]).reshape(-1, 3)

@@ -10,7 +10,7 @@ Everything is in the EGO frame of the frame (metres, m/s). Order of operations:
    (also beyond the grid), filled inside if `fill_objects` (closed surfaces: voxels not 6-connected to
    the outside; see voxelize.fill_enclosed), then clipped to its box grown by `box_margin_m` (voxel
    centres) and to the grid. Objects are painted in list order (a later object wins a shared voxel) and
-   overwrite background;
+   overwrite background; object voxels of `ground_layer_classes` in the ground layer become ground;
 4. background left over is labeled by ground.label_background with the BEV (OTHER if bev is None);
 5. instance ids and flow (the object's ground-relative velocity in the ego frame) go to object voxels;
    0 elsewhere.
@@ -25,7 +25,7 @@ import numpy as np
 from nuplan_occ.geometry import yaw_matrix
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import OTHER
-from nuplan_occ.voxel.ground import estimate_ground_height, label_background
+from nuplan_occ.voxel.ground import estimate_ground_height, ground_height_index, label_background
 from nuplan_occ.voxel.voxelize import (
     VoxelizeError, box_voxel_indices, fill_enclosed, in_box, indices_to_grid, inside_grid, mesh_voxel_indices,
 )
@@ -101,9 +101,12 @@ def remove_background_in_boxes(background: np.ndarray, objects: list[PlacedObjec
 
 def compose_frame(background_vertices: np.ndarray, background_faces: np.ndarray, objects: list[PlacedObject],
                   bev: np.ndarray | None, grid: GridSpec = DEFAULT_GRID, fill_objects: bool = True,
-                  ground_tolerance_m: float = 0.3, box_margin_m: float | None = None) -> FrameGrids:
+                  ground_tolerance_m: float = 0.3, box_margin_m: float | None = None,
+                  ground_layer_classes: tuple[int, ...] = ()) -> FrameGrids:
     """The frame's grids (see module doc). background_vertices (V, 3) metres in the ego frame,
-    background_faces (F, 3) int (empty: vertices are points); bev uint8 (X, Y) or None."""
+    background_faces (F, 3) int (empty: vertices are points); bev uint8 (X, Y) or None;
+    ground_layer_classes: object classes whose voxels in the ground layer (the layer holding the
+    column's estimated ground height) are ground instead (the road under a car's body)."""
     margin = grid.voxel_size / 2.0 if box_margin_m is None else box_margin_m
     try:
         background = indices_to_grid(mesh_voxel_indices(background_vertices, background_faces, grid), grid)
@@ -121,6 +124,12 @@ def compose_frame(background_vertices: np.ndarray, background_faces: np.ndarray,
         object_class[i, j, k] = obj.class_id
         instance[i, j, k] = obj.instance_id
         flow[i, j, k] = np.asarray(obj.velocity, dtype=np.float16).reshape(3)
+    if ground_layer_classes:
+        layer = ground_height_index(ground_height, grid)
+        in_layer = (np.arange(grid.shape[2])[None, None, :] == layer[:, :, None]) & (layer[:, :, None] >= 0)
+        to_ground = in_layer & np.isin(object_class, ground_layer_classes)
+        background |= to_ground
+        object_class[to_ground], instance[to_ground], flow[to_ground] = 0, 0, 0
     is_object = object_class > 0
     background &= ~is_object
     if bev is None:

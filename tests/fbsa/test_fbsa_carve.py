@@ -106,3 +106,18 @@ def test_lattice_tiles_the_box_and_inputs_are_checked():
     with pytest.raises(FbsaInputError, match="size"):
         carve_object_solid(np.zeros((3, 3)), np.zeros((3, 3)), np.array([1.0, 0.0, 1.0]))
     assert len(carve_object_solid(np.zeros((0, 3)), np.zeros((0, 3)), SIZE, resolution=0.5)) == 4 * 2 * 2
+
+
+def test_cell_corner_points_reach_the_cells_corners():
+    from nuplan_occ.fbsa.carve import cell_corner_points, lattice_shape
+
+    size = np.array([0.4, 0.3, 0.2])
+    counts, edge = lattice_shape(size, 0.1)
+    cells = np.array([[-0.15, -0.1, -0.05], [0.15, 0.1, 0.05]])
+    points = cell_corner_points(cells, size, 0.1, inset=0.05)
+    assert points.shape == (16, 3)
+    np.testing.assert_allclose(points[:8].min(axis=0), cells[0] - 0.45 * edge)
+    np.testing.assert_allclose(points[8:].max(axis=0), cells[1] + 0.45 * edge)
+    # every corner point stays in its own cell
+    ijk = np.floor((points + size / 2) / edge).astype(int)
+    assert np.array_equal(ijk[:8], np.repeat([[0, 0, 0]], 8, axis=0)) and np.array_equal(ijk[8:], np.repeat([[3, 2, 1]], 8, axis=0))

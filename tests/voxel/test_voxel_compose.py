@@ -18,7 +18,7 @@ def box_mesh(lo, hi):
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
-def frame(fill=True):
+def frame(fill=True, ground_layer_classes=()):
     ground_v = np.array([[-12, -12, GROUND_Z], [12, -12, GROUND_Z], [12, 12, GROUND_Z], [-12, 12, GROUND_Z]])
     # the background mesh also holds a stale blob inside the car's box (to be removed)
     blob_v, blob_f = box_mesh(np.array([4.2, 1.2, -0.9]), np.array([4.8, 1.8, -0.2]))
@@ -31,7 +31,8 @@ def frame(fill=True):
     cone = PlacedObject(cone_pts, np.zeros((0, 3), int), center=np.array([-3.0, -3.0, -1.1]), yaw=0.0,
                         size=np.array([0.4, 0.4, 0.6]), class_id=TRAFFIC_CONE, instance_id=9)
     bev = np.full(GRID.shape[:2], ROAD, dtype=np.uint8)
-    return compose_frame(vertices, faces, [car, cone], bev, GRID, fill_objects=fill), car
+    return compose_frame(vertices, faces, [car, cone], bev, GRID, fill_objects=fill,
+                         ground_layer_classes=ground_layer_classes), car
 
 
 def test_moving_car_has_its_class_instance_and_flow():
@@ -62,3 +63,19 @@ def test_points_object_and_no_fill():
     shell = (grids.instance == 7).sum()
     filled, _ = frame(fill=True)
     assert (filled.instance == 7).sum() > shell
+
+
+def test_ground_layer_classes_give_the_layer_back_to_the_road():
+    ground_v = np.array([[-12, -12, GROUND_Z], [12, -12, GROUND_Z], [12, 12, GROUND_Z], [-12, 12, GROUND_Z]])
+    car_v, car_f = box_mesh(np.array([-2.0, -0.8, -0.8]), np.array([2.0, 0.8, 0.8]))
+    car = PlacedObject(car_v, car_f, center=np.array([5.0, 1.0, GROUND_Z + 0.8]), yaw=0.0,
+                       size=np.array([4.0, 1.6, 1.6]), class_id=VEHICLE, instance_id=3)
+    bev = np.full(GRID.shape[:2], ROAD, dtype=np.uint8)
+    plain = compose_frame(ground_v, np.array([[0, 1, 2], [0, 2, 3]]), [car], bev, GRID)
+    cleared = compose_frame(ground_v, np.array([[0, 1, 2], [0, 2, 3]]), [car], bev, GRID, ground_layer_classes=(VEHICLE,))
+    layer = 6  # GROUND_Z = -1.4 lies in [-1.5, -1.25)
+    under = plain.instance[:, :, layer] == 3
+    assert under.sum() >= 16 * 7  # at least x 3..7 (16 voxels) by y 0.2..1.8 (7 voxels)
+    assert not np.any(cleared.instance[:, :, layer] == 3)
+    assert np.all(cleared.semantics[:, :, layer][under] == ROAD) and np.all(cleared.flow[:, :, layer][under] == 0)
+    assert np.array_equal(cleared.instance[:, :, layer + 1:] == 3, plain.instance[:, :, layer + 1:] == 3)
