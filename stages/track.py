@@ -21,7 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from nuplan_occ.fbsa.split import points_in_boxes
+from nuplan_occ.fbsa.split import foreground_by_track, points_in_boxes
 from nuplan_occ.fbsa.track_refine import TrackRefineParams, corrected_box, refine_track, smooth_track_poses
 from nuplan_occ.geometry import invert_transform, transform_points, wrap_angle, yaw_of
 from nuplan_occ.io.types import Boxes
@@ -35,14 +35,8 @@ def boxes_in_ego(scene, poses: np.ndarray, position: int) -> Boxes:
 
 def points_per_box(cloud_ego: np.ndarray, boxes: Boxes, origin_ego: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """track -> (points, sensor origins) in that box's frame, for the points (ego frame) inside each box."""
-    owner = points_in_boxes(cloud_ego, boxes)
-    box_from_ego = boxes.box_from_frame()
-    out = {}
-    for k in np.unique(owner[owner >= 0]):
-        local = transform_points(box_from_ego[k], cloud_ego[owner == k])
-        origins = np.repeat(transform_points(box_from_ego[k], origin_ego[None]), len(local), axis=0)
-        out[boxes.track_tokens[k]] = (local, origins)
-    return out
+    points, origins = foreground_by_track(cloud_ego, points_in_boxes(cloud_ego, boxes), boxes, origin_ego)
+    return {track: (points[track], origins[track]) for track in points}
 
 
 def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], track: str, positions: list[int],

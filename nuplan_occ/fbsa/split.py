@@ -98,6 +98,25 @@ def ego_footprint_boxes(ego: VehicleFootprint = PACIFICA, margin_m: float = 0.0)
     )
 
 
+def foreground_by_track(xyz: np.ndarray, owner: np.ndarray, boxes: Boxes, origin: np.ndarray
+                        ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Points (N, 3) of each box (owner (N,): box index, -1 = none), moved into that box's frame, and the
+    sensor origin (3,) in the same box frame once per point: (track -> points, track -> origins). Points
+    and origin in the boxes' frame. Two boxes of one track keep both point sets."""
+    foreground: dict[str, np.ndarray] = {}
+    origins: dict[str, np.ndarray] = {}
+    box_from_frame = boxes.box_from_frame()
+    for k in np.unique(owner[owner >= 0]):
+        token = boxes.track_tokens[k]
+        local = transform_points(box_from_frame[k], xyz[owner == k])
+        local_origin = np.repeat(transform_points(box_from_frame[k], origin[None]), len(local), axis=0)
+        if token in foreground:
+            local = np.vstack([foreground[token], local])
+            local_origin = np.vstack([origins[token], local_origin])
+        foreground[token], origins[token] = local, local_origin
+    return foreground, origins
+
+
 def split_frame(
     cloud_ego: PointCloud,
     boxes_ego: Boxes,
@@ -129,17 +148,7 @@ def split_frame(
     shell = in_enlarged & ~is_fg
     ego_only = on_ego & ~in_enlarged
 
-    foreground: dict[str, np.ndarray] = {}
-    origins: dict[str, np.ndarray] = {}
-    box_from_ego = boxes_ego.box_from_frame()
-    for k in np.unique(owner[is_fg]):
-        token = boxes_ego.track_tokens[k]
-        local = transform_points(box_from_ego[k], xyz[owner == k])
-        local_origin = np.repeat(transform_points(box_from_ego[k], origin[None]), len(local), axis=0)
-        if token in foreground:  # two boxes of one track in a sweep: keep both point sets
-            local = np.vstack([foreground[token], local])
-            local_origin = np.vstack([origins[token], local_origin])
-        foreground[token], origins[token] = local, local_origin
+    foreground, origins = foreground_by_track(xyz, owner, boxes_ego, origin)
     background = cloud_ego.subset(~in_enlarged & ~on_ego)
     return FrameSplit(background, foreground, origins, int(shell.sum()), int(ego_only.sum()))
 

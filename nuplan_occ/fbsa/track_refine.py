@@ -23,6 +23,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.aggregate import voxel_first_indices
+from nuplan_occ.geometry import wrap_angle, yaw_matrix
 
 
 @dataclass(frozen=True)
@@ -61,33 +63,19 @@ class TrackRefineParams:
     weight_per_point: float = 0.04
 
 
-def rotation_z(yaw: np.ndarray | float) -> np.ndarray:
-    """(3, 3) rotation about +z by yaw (rad)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def apply_correction(points_box: np.ndarray, correction: np.ndarray) -> np.ndarray:
     """(n, 3) points moved from their frame's box frame into the model frame by correction (4,)."""
     c = np.asarray(correction, dtype=np.float64)
-    return np.asarray(points_box, dtype=np.float64) @ rotation_z(c[3]).T + c[:3]
+    return np.asarray(points_box, dtype=np.float64) @ yaw_matrix(c[3]).T + c[:3]
 
 
 def corrected_box(center: np.ndarray, yaw: float, correction: np.ndarray) -> tuple[np.ndarray, float]:
     """The model frame's pose (centre (3,), yaw) in the frame the box (center, yaw) is given in (e.g. ego):
     T_frame_from_model = T_frame_from_box @ inverse(correction)."""
     c = np.asarray(correction, dtype=np.float64)
-    offset = -(rotation_z(-c[3]) @ c[:3])  # origin of the model frame, in box coordinates
-    new_center = np.asarray(center, dtype=np.float64) + rotation_z(yaw) @ offset
-    return new_center, float(np.arctan2(np.sin(yaw - c[3]), np.cos(yaw - c[3])))
-
-
-def _thin(points: np.ndarray, frame_ids: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """First point of every cube of edge voxel_m (deterministic: input order)."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    first = np.sort(first)
-    return points[first], frame_ids[first]
+    offset = -(yaw_matrix(-c[3]) @ c[:3])  # origin of the model frame, in box coordinates
+    new_center = np.asarray(center, dtype=np.float64) + yaw_matrix(yaw) @ offset
+    return new_center, float(wrap_angle(yaw - c[3]))
 
 
 def estimate_normals(points: np.ndarray, tree: cKDTree, neighbors: int) -> np.ndarray:
@@ -115,7 +103,9 @@ def build_model(frames: list[np.ndarray], corrections: np.ndarray, params: Track
     """The model of a track from its per-frame box-frame points (list of (n_i, 3)) and corrections (F, 4)."""
     pts = [apply_correction(p, c) for p, c in zip(frames, corrections)]
     ids = [np.full(len(p), i, dtype=np.int64) for i, p in enumerate(frames)]
-    points, frame_ids = _thin(np.vstack(pts), np.concatenate(ids), params.model_voxel_m)
+    all_points = np.vstack(pts)
+    keep = voxel_first_indices(all_points, params.model_voxel_m)
+    points, frame_ids = all_points[keep], np.concatenate(ids)[keep]
     tree = cKDTree(points)
     return TrackModel(points, estimate_normals(points, tree, params.normal_neighbors), frame_ids, tree)
 
@@ -150,7 +140,7 @@ def register_frame(points_box: np.ndarray, frame_id: int, model: TrackModel, sta
         g = (J * w[:, None]).T @ r + prior @ c
         step = -np.linalg.solve(H, g)
         # Compose the increment (applied after the current correction) with it.
-        c = np.concatenate([rotation_z(step[3]) @ c[:3] + step[:3], [c[3] + step[3]]])
+        c = np.concatenate([yaw_matrix(step[3]) @ c[:3] + step[:3], [c[3] + step[3]]])
         if np.abs(step[:3]).max() < 1e-4 and abs(step[3]) < 1e-5:
             break
     return c
@@ -163,7 +153,7 @@ def fix_gauge(corrections: np.ndarray, weights: np.ndarray) -> np.ndarray:
     mean = (corrections * weights[:, None]).sum(axis=0) / weights.sum()
     out = corrections.copy()
     out[:, 3] -= mean[3]
-    out[:, :3] = (corrections[:, :3] - mean[:3]) @ rotation_z(-mean[3]).T
+    out[:, :3] = (corrections[:, :3] - mean[:3]) @ yaw_matrix(-mean[3]).T
     return out
 
 
@@ -218,5 +208,5 @@ def smooth_track_poses(times_s: np.ndarray, poses: np.ndarray, weights: np.ndarr
         A = np.vander(dt, degree + 1, increasing=True) * np.sqrt(w[near])[:, None]
         coef, *_ = np.linalg.lstsq(A, values[near] * np.sqrt(w[near])[:, None], rcond=None)
         out[f] = coef[0]
-    out[:, 3] = np.arctan2(np.sin(out[:, 3]), np.cos(out[:, 3]))
+    out[:, 3] = wrap_angle(out[:, 3])
     return out

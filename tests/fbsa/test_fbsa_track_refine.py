@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from nuplan_occ.fbsa import FbsaInputError
-from nuplan_occ.fbsa.track_refine import (TrackRefineParams, apply_correction, corrected_box, fix_gauge,
-                                          refine_track, rotation_z)
+from nuplan_occ.fbsa.track_refine import TrackRefineParams, apply_correction, corrected_box, fix_gauge, refine_track
+from nuplan_occ.geometry import yaw_matrix
 from nuplan_occ.synth.agents import mesh_template
 
 SIZE = np.array([4.7, 1.9, 1.6])
@@ -33,7 +33,7 @@ def _views(seed: int, frames: int = 24):
         p = p[side | (p[:, 2] > 0.3)][:700]
         p = p + rng.normal(0, 0.015, p.shape)
         err = np.r_[rng.normal(0, 0.08, 2), rng.normal(0, 0.04), np.radians(rng.normal(0, 1.0))]
-        views.append((p - err[:3]) @ rotation_z(err[3]))  # p_true = Rz(err) p_box + err_t
+        views.append((p - err[:3]) @ yaw_matrix(err[3]))  # p_true = Rz(err) p_box + err_t
         errors.append(err)
     return views, np.array(errors)
 
@@ -81,9 +81,9 @@ def test_corrected_box_is_the_model_frame_in_the_boxes_frame():
     c = np.array([0.1, -0.05, 0.02, np.radians(2.0)])
     p_box = rng.normal(size=(20, 3))
     p_model = apply_correction(p_box, c)
-    ego_from_box = p_box @ rotation_z(yaw).T + center
+    ego_from_box = p_box @ yaw_matrix(yaw).T + center
     new_center, new_yaw = corrected_box(center, yaw, c)
-    ego_from_model = p_model @ rotation_z(new_yaw).T + new_center
+    ego_from_model = p_model @ yaw_matrix(new_yaw).T + new_center
     np.testing.assert_allclose(ego_from_model, ego_from_box, atol=1e-12)
 
 
