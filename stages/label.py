@@ -1,11 +1,13 @@
 """Stage 8, label: background voxels of the ground layer (within a tolerance of the locally estimated
 ground height) take the BEV map class at that column — drivable -> road, painted lines -> road_line,
 other ground -> other_ground; background above the ground layer stays `other`; objects keep their
-box class. The BEV map is rasterized from the GPKG vector layers in each frame's (refined) ego frame.
-Without a map for the log, background stays `other` and the frame records why.
+box class. The BEV map is rasterized from the GPKG vector layers in each frame's (refined) ego frame,
+corrected by the scene's map alignment: a 2D rigid transform that moves the scene's bright ground returns
+(paint) onto the map's painted lines (nuplan_occ.voxel.map_align). Without a map for the log, background
+stays `other` and the frame records why.
 
 Inputs: `scene`, `registration`, `grids`. Outputs: `semantics` (sweep token -> uint8 grid),
-`map_status` (str: "" when the map was used).
+`map_status` (str: "" when the map was used), `map_alignment` (MapAlignment or None without a map).
 """
 
 from __future__ import annotations
@@ -18,17 +20,47 @@ from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.io.maps import LABEL_LAYERS, NuplanMap
 from nuplan_occ.labels import OTHER
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.voxel.bev import rasterize_bev
+from nuplan_occ.voxel.bev import STOP_LINE_LAYERS, map_geometries, painted_lines, rasterize_bev
 from nuplan_occ.voxel.ground import label_background
+from nuplan_occ.voxel.map_align import (MapAlignment, align_points_to_lines, ground_returns, paint_confirmed,
+                                         polygon_edges)
 
 
 @dataclass(frozen=True)
 class LabelParams:
     """ground_tolerance_m: height above the local ground still counted as ground layer;
-    line_width_m: painted width of lane/road boundaries and stop lines."""
+    line_width_m: painted width of lane/road boundaries and stop lines.
+    align_to_paint: correct the scene's poses against the map before rasterizing it (see
+    nuplan_occ.voxel.map_align): ground returns at least paint_intensity_ratio times brighter than the ground
+    at the same range, from every align_sweep_stride-th sweep, are aligned to the painted lines; a
+    correction moving the scene more than align_max_offset_m is refused (recorded, map used as is).
+    confirm_stop_lines (with align_to_paint): a stop polygon's edge is painted as road_line only where the
+    flat-ground returns in its strip are mostly bright (nuplan_occ.voxel.map_align.paint_confirmed). The
+    map gives stop polygons, not which edge carries the paint (nuPlan's format leaves that open); painting
+    whole outlines marked unpainted asphalt as road_line (bench: road_line IoU 0.75 -> 0.83 with the check)."""
 
     ground_tolerance_m: float = 0.3
     line_width_m: float = 0.15
+    align_to_paint: bool = True
+    paint_intensity_ratio: float = 3.0
+    align_sweep_stride: int = 2
+    align_max_offset_m: float = 0.5
+    confirm_stop_lines: bool = True
+
+
+def align_map(scene, poses: np.ndarray, layers: dict, params: LabelParams) -> tuple[MapAlignment, np.ndarray | None]:
+    """The scene's map correction (bright flat-ground returns of every align_sweep_stride-th loaded sweep,
+    refined poses, against the map's painted lines) and the stop lines to paint: the stop polygon edges
+    whose strip the corrected returns show painted (None: paint whole outlines, without confirmation)."""
+    used = scene.ok_indices()[::max(1, params.align_sweep_stride)]
+    returns = ground_returns([scene.sweeps[i].cloud.xyz for i in used], [scene.sweeps[i].cloud.intensity for i in used],
+                             poses[used], scene.sensor_origin_ego, ratio=params.paint_intensity_ratio)
+    alignment = align_points_to_lines(returns.xy[returns.bright], painted_lines(layers),
+                                      max_offset_m=params.align_max_offset_m)
+    if not params.confirm_stop_lines:
+        return alignment, None
+    edges = polygon_edges(map_geometries(layers, STOP_LINE_LAYERS))
+    return alignment, edges[paint_confirmed(edges, returns.moved(alignment.correction), params.line_width_m)]
 
 
 def run(inputs: dict, params: LabelParams) -> dict:
@@ -36,25 +68,29 @@ def run(inputs: dict, params: LabelParams) -> dict:
     poses = inputs["registration"].poses
     grids = inputs["grids"]
     position_of = {sweep.token: i for i, sweep in enumerate(scene.sweeps)}
-    layers, map_status = None, "no map file found for the log's map"
+    layers, map_status, alignment, stop_lines = None, "no map file found for the log's map", None, None
     if scene.map_path is not None and grids:
         centers = np.stack([poses[position_of[token]][:2, 3] for token in grids])
         middle = (centers.min(axis=0) + centers.max(axis=0)) / 2.0
         half_size = float(np.max(centers.max(axis=0) - centers.min(axis=0))) / 2.0 + 75.0
         layers = NuplanMap(scene.map_path).layers_in_window(middle, half_size, LABEL_LAYERS)
         map_status = ""
+        if params.align_to_paint:
+            alignment, stop_lines = align_map(scene, poses, layers, params)
+    correction = alignment.correction if alignment is not None else np.eye(4)
     semantics = {}
     for token, grid in grids.items():
         labeled = grid.semantics.copy()
         if layers is not None:
-            bev = rasterize_bev(layers, poses[position_of[token]], DEFAULT_GRID, line_width_m=params.line_width_m)
+            bev = rasterize_bev(layers, correction @ poses[position_of[token]], DEFAULT_GRID,
+                                line_width_m=params.line_width_m, stop_lines=stop_lines)
             background = label_background(grid.occupied_background, bev, DEFAULT_GRID,
                                           ground_tolerance_m=params.ground_tolerance_m)
             replace = grid.occupied_background & (labeled == OTHER)
             labeled[replace] = background[replace]
         semantics[token] = labeled
-    return {"semantics": semantics, "map_status": map_status}
+    return {"semantics": semantics, "map_status": map_status, "map_alignment": alignment}
 
 
-STAGE = Stage("label", inputs=("scene", "registration", "grids"), outputs=("semantics", "map_status"),
+STAGE = Stage("label", inputs=("scene", "registration", "grids"), outputs=("semantics", "map_status", "map_alignment"),
               params_type=LabelParams, run=run, code=("nuplan_occ.voxel", "nuplan_occ.io.maps"), doc=__doc__ or "")

@@ -16,6 +16,7 @@ from nuplan_occ.geometry import invert_transform
 from nuplan_occ.pipeline.frame_columns import agent_speed_columns, ego_speeds, point_coverage
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.storage import DatasetWriter, FrameRecord
+from nuplan_occ.voxel.map_align import MapAlignment
 
 
 @dataclass(frozen=True)
@@ -25,8 +26,9 @@ class WriteParams:
     members: tuple[str, ...] = ("semantics", "mask_lidar", "mask_camera", "instance", "flow")
 
 
-def frame_columns(scene, position: int, registration, speeds, outliers: int, map_status: str) -> dict:
-    """Filter columns and QA figures of one frame."""
+def frame_columns(scene, position: int, registration, speeds, outliers: int, map_status: str,
+                  alignment: MapAlignment | None) -> dict:
+    """Filter columns and QA figures of one frame (qa_map_*: the scene's map alignment, NaN without)."""
     sweep = scene.sweeps[position]
     correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
     columns = {
@@ -39,6 +41,11 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
         "qa_points": len(sweep.cloud) if sweep.cloud is not None else 0,
         "qa_outliers_removed": int(outliers),
         "qa_map_status": map_status,
+        "qa_map_aligned": bool(alignment is not None and alignment.applied),
+        "qa_map_offset_m": float(np.hypot(alignment.dx, alignment.dy)) if alignment is not None else float("nan"),
+        "qa_map_yaw_deg": float(np.degrees(alignment.dyaw)) if alignment is not None else float("nan"),
+        "qa_map_paint_points": int(alignment.n_points) if alignment is not None else 0,
+        "qa_map_paint_rms_m": float(alignment.rms_after) if alignment is not None else float("nan"),
     }
     return columns
 
@@ -47,17 +54,19 @@ def run(inputs: dict, params: WriteParams) -> dict:
     scene = inputs["scene"]
     task = scene.task
     registration = inputs["registration"]
+    alignment = inputs["map_alignment"]
     poses = registration.poses
+    map_poses = poses if alignment is None else np.einsum("ij,njk->nik", alignment.correction, poses)
     speeds = ego_speeds(poses, np.array([s.timestamp_us for s in scene.sweeps]))
     records = []
     for position, sweep in enumerate(scene.sweeps):
         if not sweep.is_output:
             continue
         columns = frame_columns(scene, position, registration, speeds, inputs["outliers_removed"][position],
-                                inputs["map_status"])
+                                inputs["map_status"], alignment)
         record = FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
                              scene_name=task.scene_name, frame_index=sweep.index, token=sweep.token,
-                             timestamp_us=sweep.timestamp_us, ego_to_global=poses[position], arrays={},
+                             timestamp_us=sweep.timestamp_us, ego_to_global=map_poses[position], arrays={},
                              columns=columns)
         if sweep.token not in inputs["semantics"]:
             record.status, record.failure_reason = "failed", sweep.failure or "frame was not built"
@@ -77,5 +86,6 @@ def run(inputs: dict, params: WriteParams) -> dict:
     return {"rows": writer.write_shard(task.shard_key, records)}
 
 
-STAGE = Stage("write", inputs=("scene", "registration", "grids", "semantics", "masks", "outliers_removed", "map_status"),
+STAGE = Stage("write", inputs=("scene", "registration", "grids", "semantics", "masks", "outliers_removed", "map_status",
+                                "map_alignment"),
               outputs=("rows",), params_type=WriteParams, run=run, code=("nuplan_occ.storage",), doc=__doc__ or "")

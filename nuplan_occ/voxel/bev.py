@@ -93,13 +93,15 @@ def _line_cells(lines: shapely.Geometry, gx: np.ndarray, gy: np.ndarray, T_globa
 
 
 def rasterize_bev(layers: dict[str, MapLayer], T_global_from_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID,
-                  line_width_m: float = 0.15, stop_line_width_m: float | None = None) -> np.ndarray:
+                  line_width_m: float = 0.15, stop_line_width_m: float | None = None,
+                  stop_lines: np.ndarray | None = None) -> np.ndarray:
     """uint8 (X, Y) ground class per grid column: ROAD (12), OTHER_GROUND (13) or ROAD_LINE (14).
 
     layers: map layer name -> MapLayer in the global (UTM) frame; absent layers are skipped.
     T_global_from_ego: (4, 4) pose of the frame's ego (rear axle). Rows/cols follow the grid's x/y
     axes of the EGO frame. line_width_m: painted width of boundaries; stop_line_width_m: of stop lines
-    (defaults to line_width_m).
+    (defaults to line_width_m). stop_lines: the painted stop lines (global-frame LineStrings, e.g. the
+    stop polygon edges the LiDAR shows painted); None draws every stop polygon's whole outline.
     """
     gx, gy = cell_centers_global(T_global_from_ego, grid)
     bev = np.full(gx.shape, OTHER_GROUND, dtype=np.uint8)
@@ -111,7 +113,9 @@ def rasterize_bev(layers: dict[str, MapLayer], T_global_from_ego: np.ndarray, gr
         bev[shapely.intersects_xy(union, gx, gy)] = ROAD
     line_sets = [
         (_geometries_near(layers, LINE_LAYERS, area), line_width_m),
-        (shapely.boundary(_geometries_near(layers, STOP_LINE_LAYERS, area)),
+        (shapely.boundary(_geometries_near(layers, STOP_LINE_LAYERS, area)) if stop_lines is None
+         else np.asarray(stop_lines, dtype=object).reshape(-1)[shapely.intersects(stop_lines, area)]
+         if len(stop_lines) else np.zeros(0, dtype=object),
          line_width_m if stop_line_width_m is None else stop_line_width_m),
     ]
     for geoms, width in line_sets:
@@ -119,6 +123,20 @@ def rasterize_bev(layers: dict[str, MapLayer], T_global_from_ego: np.ndarray, gr
             lines = shapely.union_all(geoms)
             bev[_line_cells(lines, gx, gy, T_global_from_ego, grid, width)] = ROAD_LINE
     return bev
+
+
+def map_geometries(layers: dict[str, MapLayer], names: tuple[str, ...]) -> np.ndarray:
+    """Every valid, non-empty geometry of the named layers (global frame)."""
+    return _geometries_near(layers, names, shapely.box(-1e12, -1e12, 1e12, 1e12))
+
+
+def painted_lines(layers: dict[str, MapLayer]) -> np.ndarray:
+    """Object array of the painted lines' centre lines (global frame): the parts of every `boundaries`
+    linestring and of every stop polygon's outline, as single LineStrings."""
+    lines = np.concatenate([map_geometries(layers, LINE_LAYERS),
+                            shapely.boundary(map_geometries(layers, STOP_LINE_LAYERS))])
+    parts = shapely.get_parts(lines) if len(lines) else np.zeros(0, dtype=object)
+    return parts[shapely.get_type_id(parts) != 0] if len(parts) else parts
 
 
 def drivable_columns(bev: np.ndarray) -> np.ndarray:

@@ -56,6 +56,15 @@ def test_build_end_to_end_default_method_with_bad_blobs(data_root, tmp_path):
     assert summary.frames_failed == 2 and summary.frames_built == len(manifest) - 2
     assert validate_dataset(str(out)) == []
 
+    truth = {r["token"]: np.reshape(r["ego_to_global"], (4, 4)) for r in read_manifest(str(data_root / "truth")).to_pylist()}
+    ok = [r for r in manifest if r["status"] == "ok"]
+    assert all(r["qa_map_aligned"] for r in ok)
+    # the written pose is the map-aligned one: it sits on the true pose where the logged one is centimetres off
+    error = [np.linalg.norm(np.reshape(r["ego_to_global"], (4, 4))[:2, 3] - truth[r["token"]][:2, 3]) for r in ok]
+    with NuplanLog(db, data_root / "nuplan-v1.1" / "sensor_blobs") as log:
+        logged = [np.linalg.norm(log.frame_pose(f)[:2, 3] - truth[f.token][:2, 3]) for f in frames if f.token in truth]
+    assert np.median(error) < 0.015 and np.median(error) < np.median(logged) / 2
+
     ds = open_dataset(str(out))
     frame = ds[0]
     assert frame["semantics"].shape == (400, 400, 32) and frame["semantics"].dtype == np.uint8

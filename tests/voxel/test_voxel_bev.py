@@ -46,3 +46,19 @@ def test_thin_line_and_stop_polygon_become_road_line():
     assert np.all(bev[cell(-7.9, 0)[0]:cell(7.9, 0)[0] + 1, cell(0, -2.05)[1]] == ROAD_LINE)
     assert bev[cell(3.1, 2.5)] == ROAD_LINE and bev[cell(3.2, 2.5)] == ROAD_LINE  # stop line outline
     assert bev[cell(0.0, 0.0)] == ROAD
+
+
+def test_given_stop_lines_replace_the_stop_polygon_outlines():
+    polygon = shapely.Polygon(to_global([[3, 1], [5, 1], [5, 4], [3, 4]]))  # 2 m deep
+    layers = {
+        "road_segments": MapLayer(np.array([shapely.box(*ORIGIN[:2] - 50, *ORIGIN[:2] + 50)], dtype=object)),
+        "stop_polygons": MapLayer(np.array([polygon], dtype=object)),
+    }
+    front = shapely.LineString(to_global([[3.1, 1], [3.1, 4]]))  # the painted edge, as confirmed by paint
+    only_front = rasterize_bev(layers, T_GLOBAL_FROM_EGO, GRID, stop_lines=np.array([front], dtype=object))
+    assert only_front[cell(3.1, 2.5)] == ROAD_LINE
+    assert only_front[cell(4.9, 2.5)] == ROAD and only_front[cell(4.0, 1.0)] == ROAD  # back and sides: road
+    none = rasterize_bev(layers, T_GLOBAL_FROM_EGO, GRID, stop_lines=np.zeros(0, dtype=object))
+    assert not (none == ROAD_LINE).any()
+    outline = rasterize_bev(layers, T_GLOBAL_FROM_EGO, GRID)
+    assert outline[cell(4.9, 2.5)] == ROAD_LINE and outline[cell(3.1, 2.5)] == ROAD_LINE

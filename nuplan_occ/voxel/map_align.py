@@ -1,0 +1,278 @@
+"""Align the vector map to the LiDAR's painted lines: a 2D rigid correction of the scene's poses against
+the map. Pure (numpy + shapely 2).
+
+Relative poses after registration agree to about a millimetre, but the scene as a whole can sit a few
+centimetres (synthetic logs) to decimetres (real logs: GNSS/INS error, map survey error) off the map. The
+painted lines are 0.15 m wide, so such an offset moves them to the neighbouring voxels. Paint is far more
+reflective than asphalt (retroreflective beads), so ground returns whose intensity is well above that of
+the ground at the same range mark the painted strips. Aligning them to the map's line geometries by a
+robust 2D point-to-line ICP (x, y, yaw) gives the correction.
+
+Frames: points "ego" are in a sweep's ego frame (metres); "global" is the map's frame (UTM metres). The
+correction C is a 4x4 transform acting in the global frame: T_global_from_ego(corrected) = C @ T_global_from_ego.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from scipy import ndimage
+
+
+@dataclass(frozen=True)
+class MapAlignment:
+    """Result of `align_points_to_lines`. dx, dy: metres (global frame); dyaw: radians about `pivot`
+    (global x, y); n_points: paint points used in the last iteration; rms_before / rms_after: RMS
+    point-to-line distance (m) of the used points before and after; applied: False when the correction was
+    refused (then `reason` says why and the correction is the identity)."""
+
+    dx: float
+    dy: float
+    dyaw: float
+    pivot: tuple[float, float]
+    n_points: int
+    rms_before: float
+    rms_after: float
+    applied: bool
+    reason: str = ""
+
+    @property
+    def correction(self) -> np.ndarray:
+        """4x4 transform C (global -> corrected global): rotation by dyaw about the pivot, then (dx, dy)."""
+        C = np.eye(4)
+        if not self.applied:
+            return C
+        c, s = np.cos(self.dyaw), np.sin(self.dyaw)
+        R = np.array([[c, -s], [s, c]])
+        pivot = np.asarray(self.pivot)
+        C[:2, :2] = R
+        C[:2, 3] = pivot - R @ pivot + np.array([self.dx, self.dy])
+        return C
+
+
+def flat_ground(points_ego: np.ndarray, cell_m: float = 0.5, flatness_m: float = 0.06) -> np.ndarray:
+    """(N,) bool: points (N, 3, ego frame, m) whose cell_m x cell_m column and its 8 neighbours hold only
+    points within flatness_m of each other in height: open, flat ground. Columns at a curb, a wall foot, an
+    object or vegetation are left out (their returns are bright for other reasons than paint: a curb's face
+    and edge are seen head-on)."""
+    points_ego = np.asarray(points_ego, dtype=np.float64)
+    if len(points_ego) == 0:
+        return np.zeros(0, dtype=bool)
+    cells = np.floor(points_ego[:, :2] / cell_m).astype(np.int64)
+    cells -= cells.min(axis=0) - 1
+    shape = tuple(cells.max(axis=0) + 2)
+    lowest = np.full(shape, np.inf)
+    highest = np.full(shape, -np.inf)
+    np.minimum.at(lowest, (cells[:, 0], cells[:, 1]), points_ego[:, 2])
+    np.maximum.at(highest, (cells[:, 0], cells[:, 1]), points_ego[:, 2])
+    lowest = ndimage.minimum_filter(lowest, size=3, mode="nearest")
+    highest = ndimage.maximum_filter(highest, size=3, mode="nearest")
+    return (highest - lowest <= flatness_m)[cells[:, 0], cells[:, 1]]
+
+
+def intensity_ratio(points_ego: np.ndarray, intensity: np.ndarray, sensor_origin_ego: np.ndarray,
+                    range_bin_m: float = 2.0, min_per_bin: int = 20) -> np.ndarray:
+    """(N,) intensity of each point of one sweep divided by the median intensity of the sweep's flat-ground
+    points (see `flat_ground`) at the same horizontal range from the sensor (bins of range_bin_m; intensity
+    falls with range and incidence); NaN in bins with fewer than min_per_bin flat-ground points.
+    points_ego: (N, 3) ego frame, m; sensor_origin_ego: (3,) m."""
+    points_ego = np.asarray(points_ego, dtype=np.float64)
+    intensity = np.asarray(intensity, dtype=np.float64)
+    ratio = np.full(len(points_ego), np.nan)
+    if len(points_ego) == 0:
+        return ratio
+    ground = flat_ground(points_ego)
+    bins = np.floor(np.linalg.norm(points_ego[:, :2] - np.asarray(sensor_origin_ego)[None, :2], axis=1)
+                    / range_bin_m).astype(np.int64)
+    for b in np.unique(bins[ground]):
+        in_bin = ground & (bins == b)
+        median = float(np.median(intensity[in_bin]))
+        if in_bin.sum() >= min_per_bin and median > 0:
+            ratio[bins == b] = intensity[bins == b] / median
+    return ratio
+
+
+@dataclass(frozen=True)
+class GroundReturns:
+    """Flat-ground returns of a scene's sweeps: xy (M, 2) global frame, m; bright (M,) bool: looks like paint."""
+
+    xy: np.ndarray
+    bright: np.ndarray
+
+    def moved(self, correction: np.ndarray) -> "GroundReturns":
+        """The returns moved by a 4x4 global-frame correction (see MapAlignment.correction)."""
+        return GroundReturns(self.xy @ correction[:2, :2].T + correction[:2, 3], self.bright)
+
+
+def ground_returns(clouds_ego: list[np.ndarray], intensities: list[np.ndarray], T_global_from_ego: np.ndarray,
+                   sensor_origin_ego: np.ndarray, ratio: float = 3.0) -> GroundReturns:
+    """The sweeps' returns on ground that is flat in all sweeps together (`flat_ground` of the merged cloud,
+    dense enough to reveal every curb), each marked bright (paint) when at least `ratio` times brighter than
+    the flat ground at its range in its own sweep.
+    clouds_ego[i]: (N_i, 3) ego frame of sweep i, m; T_global_from_ego: (S, 4, 4) the sweeps' poses."""
+    merged, bright = [], []
+    for xyz, values, T in zip(clouds_ego, intensities, T_global_from_ego):
+        merged.append(np.asarray(xyz, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+        with np.errstate(invalid="ignore"):
+            bright.append(intensity_ratio(xyz, values, sensor_origin_ego) >= ratio)
+    if not merged:
+        return GroundReturns(np.zeros((0, 2)), np.zeros(0, dtype=bool))
+    points, bright_all = np.vstack(merged), np.concatenate(bright)
+    flat = flat_ground(points)
+    return GroundReturns(points[flat, :2], bright_all[flat])
+
+
+def polygon_edges(polygons: np.ndarray) -> np.ndarray:
+    """Object array of every straight edge (2-point LineString) of the polygons' outlines."""
+    edges = []
+    for ring in shapely.get_parts(shapely.boundary(np.asarray(polygons, dtype=object))):
+        coords = shapely.get_coordinates(ring)
+        edges.extend(shapely.linestrings(np.stack([coords[:-1], coords[1:]], axis=1)))
+    return np.asarray([e for e in edges if shapely.length(e) > 1e-6], dtype=object)
+
+
+def paint_confirmed(lines: np.ndarray, returns: GroundReturns, width_m: float, min_bright_fraction: float = 0.5,
+                    min_returns: int = 10) -> np.ndarray:
+    """(L,) bool: lines (global frame) whose painted strip (width_m, plus 0.05 m either side) holds at least
+    min_returns flat-ground returns, at least min_bright_fraction of them bright. A line never observed, or
+    observed as bare asphalt, is not confirmed."""
+    lines = np.asarray(lines, dtype=object).reshape(-1)
+    if len(lines) == 0 or len(returns.xy) == 0:
+        return np.zeros(len(lines), dtype=bool)
+    strips = shapely.buffer(lines, width_m / 2.0 + 0.05, cap_style="flat")
+    near = shapely.intersects_xy(shapely.union_all(strips), returns.xy[:, 0], returns.xy[:, 1])
+    points = shapely.points(returns.xy[near])
+    line_index, point_index = shapely.STRtree(points).query(strips, predicate="contains")
+    total = np.bincount(line_index, minlength=len(lines))
+    bright = np.bincount(line_index, weights=returns.bright[near][point_index], minlength=len(lines))
+    return (total >= min_returns) & (bright >= min_bright_fraction * np.maximum(total, 1))
+
+
+def _foot_and_tangent(lines: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Foot point (K, 2) on lines[k] of shapely points[k], and the line's unit tangent (K, 2) there."""
+    s = shapely.line_locate_point(lines, points)
+    length = shapely.length(lines)
+    ahead = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.minimum(s + 0.05, length)))
+    behind = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.maximum(s - 0.05, 0.0)))
+    foot = shapely.get_coordinates(shapely.line_interpolate_point(lines, s))
+    tangent = ahead - behind
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    return foot.reshape(-1, 2), tangent.reshape(-1, 2)
+
+
+def _line_pairs(xy: np.ndarray, lines: np.ndarray, tree: shapely.STRtree, reach_m: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (point, line) pair closer than reach_m: point index (K,), the line's unit normal (K, 2) at the
+    foot point and the point's signed distance along it (K,). A point moved by a small d then lies at
+    residual + normal . d from that line (the line taken as straight over the move)."""
+    pts = shapely.points(xy)
+    point_index, line_index = tree.query(pts, predicate="dwithin", distance=reach_m)
+    foot, tangent = _foot_and_tangent(lines[line_index], pts[point_index])
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    residual = np.einsum("ij,ij->i", xy[point_index] - foot, normal)
+    return point_index, normal, residual
+
+
+def _best_translation(point_index: np.ndarray, normal: np.ndarray, residual: np.ndarray, n_points: int,
+                      search_m: float, step_m: float, inlier_m: float) -> np.ndarray:
+    """The translation (2,) on a square grid of half size search_m (step step_m) that puts the most points
+    within inlier_m of a line; among equal counts the smallest translation (directions the lines leave
+    free stay at zero)."""
+    axis = np.arange(-search_m, search_m + step_m / 2, step_m)
+    offsets = np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2)
+    order = np.argsort(point_index, kind="stable")
+    point_index, normal, residual = point_index[order], normal[order], residual[order]
+    starts = np.flatnonzero(np.r_[True, point_index[1:] != point_index[:-1]])
+    counts = np.zeros(len(offsets))
+    for chunk in np.array_split(np.arange(len(offsets)), max(1, len(offsets) // 64)):
+        inlier = np.abs(residual[:, None] + normal @ offsets[chunk].T) <= inlier_m  # (pairs, chunk)
+        counts[chunk] = np.logical_or.reduceat(inlier, starts, axis=0).sum(axis=0)
+    best = counts.max()
+    tied = np.flatnonzero(counts >= best)
+    return offsets[tied[np.argmin(np.linalg.norm(offsets[tied], axis=1))]]
+
+
+def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_offset_m: float = 0.5,
+                          paint_half_width_m: float = 0.075, search_step_m: float = 0.02, gate_m: float = 0.15,
+                          huber_m: float = 0.05, prior_fraction: float = 0.01, min_points: int = 200,
+                          iterations: int = 10) -> MapAlignment:
+    """2D rigid correction moving paint points onto the map's painted lines.
+
+    points_xy_global: (N, 2) paint-candidate points, global frame (m). lines: array of shapely LineStrings
+    (global frame): the painted lines' centre lines.
+    1. Translation search: the translation within max_offset_m (grid step search_step_m) that puts the most
+       points within paint_half_width_m of a line. Counting inliers, unlike least squares, is not pulled by
+       bright returns that are not paint (a curb top next to an edge line).
+    2. Refinement from there: each iteration matches every point within gate_m of a line to its nearest
+       line point and solves the linearized point-to-line least squares in (dx, dy, dyaw) with Huber weights
+       (huber_m) and a weak prior toward the found translation and zero yaw (as strong as prior_fraction of
+       the points constraining each of dx, dy and the yaw's motion at the points' RMS radius; it keeps
+       directions the lines do not constrain, e.g. along a straight road, where the search left them).
+    The correction is refused (identity, `applied` False, `reason` set) with fewer than min_points points
+    near a line, or when it would move the scene more than max_offset_m at the points' extent."""
+    xy = np.asarray(points_xy_global, dtype=np.float64).reshape(-1, 2)
+    lines = np.asarray([g for g in np.asarray(lines, dtype=object).reshape(-1)
+                        if g is not None and not shapely.is_empty(g)], dtype=object)
+    pivot = np.asarray(xy.mean(axis=0) if len(xy) else (0.0, 0.0))
+    refused = dict(dx=0.0, dy=0.0, dyaw=0.0, pivot=(float(pivot[0]), float(pivot[1])), applied=False)
+    if len(xy) < min_points or len(lines) == 0:
+        return MapAlignment(n_points=0, rms_before=float("nan"), rms_after=float("nan"), **refused,
+                            reason=f"too few paint points ({len(xy)}) or no painted lines")
+    tree = shapely.STRtree(lines)
+    point_index, normal, residual = _line_pairs(xy, lines, tree, max_offset_m + paint_half_width_m)
+    near_before = _nearest_distance(tree, xy) <= gate_m
+    rms_before = _rms(_nearest_distance(tree, xy)[near_before])
+    if len(np.unique(point_index)) < min_points:
+        return MapAlignment(n_points=int(near_before.sum()), rms_before=rms_before, rms_after=float("nan"),
+                            **refused, reason=f"only {len(np.unique(point_index))} paint points near a line")
+    start = _best_translation(point_index, normal, residual, len(xy), max_offset_m, search_step_m, paint_half_width_m)
+    local = xy - pivot
+    params = np.array([start[0], start[1], 0.0])  # dx, dy, dyaw
+    anchor = params.copy()
+    used = np.zeros(len(xy), dtype=bool)
+    for _ in range(iterations):
+        moved = _moved(local, params) + pivot
+        (_, which), dist = tree.query_nearest(shapely.points(moved), return_distance=True, all_matches=False)
+        used = np.asarray(dist) <= gate_m
+        if used.sum() < min_points:
+            return MapAlignment(n_points=int(used.sum()), rms_before=rms_before, rms_after=float("nan"), **refused,
+                                reason=f"only {int(used.sum())} paint points within {gate_m} m of a line")
+        foot, tangent = _foot_and_tangent(lines[which[used]], shapely.points(moved[used]))
+        normal_used = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+        res = np.einsum("ij,ij->i", moved[used] - foot, normal_used)
+        arm = moved[used] - pivot - params[:2]  # rotated local offsets
+        J = np.stack([normal_used[:, 0], normal_used[:, 1],
+                      -arm[:, 1] * normal_used[:, 0] + arm[:, 0] * normal_used[:, 1]], axis=1)
+        weight = np.where(np.abs(res) <= huber_m, 1.0, huber_m / np.maximum(np.abs(res), 1e-12))
+        radius = max(float(np.sqrt(np.mean(np.sum(arm**2, axis=1)))), 1.0)
+        prior = prior_fraction * weight.sum() * np.diag([1.0, 1.0, radius**2])
+        step = np.linalg.solve(J.T @ (weight[:, None] * J) + prior, -J.T @ (weight * res) - prior @ (params - anchor))
+        params = params + step
+        if np.abs(step[:2]).max() < 1e-4 and abs(step[2]) < 1e-6:
+            break
+    dist_after = _nearest_distance(tree, _moved(local, params) + pivot)
+    reach = float(np.max(np.linalg.norm(local, axis=1)))
+    shift = float(np.hypot(params[0], params[1]) + abs(params[2]) * reach)
+    if shift > max_offset_m:
+        return MapAlignment(n_points=int(used.sum()), rms_before=rms_before, rms_after=float("nan"), **refused,
+                            reason=f"correction of {shift:.2f} m exceeds {max_offset_m} m")
+    return MapAlignment(float(params[0]), float(params[1]), float(params[2]), (float(pivot[0]), float(pivot[1])),
+                        int(used.sum()), rms_before, _rms(dist_after[dist_after <= gate_m]), True)
+
+
+def _moved(local: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """Points (N, 2) relative to the pivot, rotated by params[2] and shifted by params[:2]."""
+    c, s = np.cos(params[2]), np.sin(params[2])
+    return local @ np.array([[c, s], [-s, c]]) + params[:2]
+
+
+def _nearest_distance(tree: shapely.STRtree, xy: np.ndarray) -> np.ndarray:
+    """(N,) distance (m) of each point to its nearest line."""
+    _, dist = tree.query_nearest(shapely.points(xy), return_distance=True, all_matches=False)
+    return np.asarray(dist)
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(values**2))) if len(values) else float("nan")
