@@ -12,8 +12,8 @@ rays through its box), which the voxelize stage prefers to its surface.
 
 Inputs: `background_aggregate`, `objects`, `object_through_rays`.
 Outputs: `background_surface` (Surface, scene frame), `object_surfaces` (track -> Surface, box frame),
-`object_solids` (track -> (M, 3) points sampling the solid lattice cells, box frame, m: their centres, or
-their corners for `corner_categories`).
+`object_solids` (track -> SolidSamples: points sampling the solid lattice cells, box frame, m: their
+centres, or their corners for `corner_categories`; and which samples' cells hold an observed point).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.fbsa.carve import carve_object_solid, cell_corner_points
+from nuplan_occ.fbsa.carve import SolidSamples, carve_object_solid, cell_corner_points, cells_holding_points
 from nuplan_occ.fbsa.ground_fill import ground_fill_mesh
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.recon import ReconParams, Surface, reconstruct
@@ -73,8 +73,12 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
             cells = carve_object_solid(aggregate.points, aggregate.sensor_origins, aggregate.size,
                                        resolution=params.carve_resolution_m,
                                        through=inputs["object_through_rays"].get(track))
-            object_solids[track] = (cell_corner_points(cells, aggregate.size, params.carve_resolution_m)
-                                    if aggregate.category in params.corner_categories else cells)
+            observed = cells_holding_points(cells, aggregate.points, aggregate.size, params.carve_resolution_m)
+            if aggregate.category in params.corner_categories:
+                object_solids[track] = SolidSamples(cell_corner_points(cells, aggregate.size, params.carve_resolution_m),
+                                                    np.repeat(observed, 8))
+            else:
+                object_solids[track] = SolidSamples(cells, observed)
         if len(aggregate.points) >= params.min_object_points:
             object_surfaces[track] = reconstruct(aggregate.points, aggregate.sensor_origins,
                                                  method=params.object_method, frame="box")

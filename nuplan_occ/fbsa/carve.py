@@ -10,9 +10,20 @@ is closed by construction, so a voxelizer fills it solid where the surface itsel
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
+
+
+@dataclass(frozen=True)
+class SolidSamples:
+    """A carved solid as points in the BOX frame (m): points (M, 3) sample the solid lattice cells (their
+    centres, or their corners); observed (M,) bool: the sample's cell holds one of the object's points."""
+
+    points: np.ndarray
+    observed: np.ndarray
 
 
 def lattice_shape(size: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
@@ -128,3 +139,18 @@ def cell_corner_points(cells_box: np.ndarray, size: np.ndarray, resolution: floa
     signs = np.array(np.meshgrid([-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0], indexing="ij")).reshape(3, -1).T
     offsets = signs * (0.5 - inset) * edge
     return (np.asarray(cells_box, np.float64)[:, None, :] + offsets[None]).reshape(-1, 3)
+
+
+def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float) -> np.ndarray:
+    """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size,
+    resolution)`) that hold at least one of points_box (N, 3, box frame)."""
+    counts, edge = lattice_shape(size, resolution)
+    half = np.asarray(size, np.float64) / 2.0
+
+    def flat(xyz: np.ndarray) -> np.ndarray:
+        ijk = np.floor((np.asarray(xyz, np.float64).reshape(-1, 3) + half) / edge).astype(np.int64)
+        ok = np.all((ijk >= 0) & (ijk < counts), axis=1)
+        return np.where(ok, (ijk[:, 0] * counts[1] + ijk[:, 1]) * counts[2] + ijk[:, 2], -1)
+
+    held = flat(points_box)
+    return np.isin(flat(cells_box), held[held >= 0])

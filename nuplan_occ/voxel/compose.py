@@ -46,6 +46,10 @@ class PlacedObject:
     class_id: int
     instance_id: int
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    min_points_per_voxel: int = 1
+    anchors: np.ndarray | None = None
+    """Raw points only (no faces): a voxel is the object's when it holds at least min_points_per_voxel of
+    them, or one marked in `anchors` (V,) bool (e.g. solid cells that hold an observed point)."""
 
     def vertices_ego(self) -> np.ndarray:
         """(V, 3) vertices moved from the box frame into the ego frame."""
@@ -66,12 +70,29 @@ class FrameGrids:
     ground_height: np.ndarray | None = None
 
 
+def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_count: int,
+                        grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """(N,) bool: points (N, 3, ego frame, m) whose voxel holds at least min_count of them or an anchor
+    point (anchors (N,) bool or None)."""
+    idx = np.floor((np.asarray(points_ego, dtype=np.float64) - grid.lower) / grid.voxel_size).astype(np.int64)
+    if len(idx) == 0:
+        return np.zeros(0, dtype=bool)
+    _, inverse, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    keep = counts >= min_count
+    if anchors is not None:
+        keep |= np.bincount(inverse, weights=np.asarray(anchors, dtype=bool), minlength=len(counts)) > 0
+    return keep[inverse]
+
+
 def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill: bool = True,
                          box_margin_m: float | None = None) -> np.ndarray:
     """(M, 3) grid indices of an object's voxels: its surface posed by its box, voxelized exactly,
     filled when `fill`, clipped to its box grown by box_margin_m (default half a voxel) and to the grid."""
     margin = grid.voxel_size / 2.0 if box_margin_m is None else box_margin_m
     vertices = obj.vertices_ego()
+    if len(obj.faces) == 0 and obj.min_points_per_voxel > 1:
+        vertices = vertices[crowded_or_anchored(vertices, obj.anchors, obj.min_points_per_voxel, grid)]
     if len(vertices) == 0:
         return np.zeros((0, 3), dtype=np.int64)
     try:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nuplan_occ.fbsa import FbsaInputError
-from nuplan_occ.fbsa.carve import carve_object_solid, lattice_shape, segments_through_box
+from nuplan_occ.fbsa.carve import carve_object_solid, cells_holding_points, lattice_shape, segments_through_box
 
 SIZE = np.array([2.0, 1.0, 1.0])
 # the L: a full-length slab below z = 0.03 and a block behind x = 0.03 (faces inside lattice cells, not on
@@ -121,3 +121,15 @@ def test_cell_corner_points_reach_the_cells_corners():
     # every corner point stays in its own cell
     ijk = np.floor((points + size / 2) / edge).astype(int)
     assert np.array_equal(ijk[:8], np.repeat([[0, 0, 0]], 8, axis=0)) and np.array_equal(ijk[8:], np.repeat([[3, 2, 1]], 8, axis=0))
+
+
+def test_cells_holding_points_marks_exactly_the_observed_cells():
+    size = np.array([1.0, 0.6, 0.4])
+    counts, edge = lattice_shape(size, 0.1)
+    ijk = np.stack(np.unravel_index(np.arange(int(np.prod(counts))), tuple(counts)), axis=1)
+    cells = (ijk + 0.5) * edge - size / 2
+    points = np.array([[0.43, 0.21, -0.17], [-0.05, 0.0, 0.0], [3.0, 0.0, 0.0]])  # the last one is outside
+    held = cells_holding_points(cells, points, size, 0.1)
+    assert held.sum() == 2
+    for point in points[:2]:  # each inside point is in one of the two marked cells
+        assert (np.abs(cells[held] - point).max(axis=1) <= edge.max() / 2 + 1e-9).sum() == 1

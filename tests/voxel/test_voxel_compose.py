@@ -5,7 +5,7 @@ import trimesh
 
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import OTHER, ROAD, TRAFFIC_CONE, VEHICLE
-from nuplan_occ.voxel.compose import PlacedObject, compose_frame
+from nuplan_occ.voxel.compose import PlacedObject, compose_frame, crowded_or_anchored, object_voxel_indices
 
 
 GRID = GridSpec(x_min=-10, x_max=10, y_min=-10, y_max=10, z_min=-3, z_max=5, voxel_size=0.25)
@@ -79,3 +79,28 @@ def test_ground_layer_classes_give_the_layer_back_to_the_road():
     assert not np.any(cleared.instance[:, :, layer] == 3)
     assert np.all(cleared.semantics[:, :, layer][under] == ROAD) and np.all(cleared.flow[:, :, layer][under] == 0)
     assert np.array_equal(cleared.instance[:, :, layer + 1:] == 3, plain.instance[:, :, layer + 1:] == 3)
+
+
+def test_sparse_solid_cells_need_company_or_an_observed_cell():
+    # 0.1 m cell centres in the box frame: a full 0.5 m block, plus two lone cells a rays-crossed voxel kept
+    axis = np.arange(-0.2, 0.25, 0.1)
+    block = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    lone = np.array([[0.6, 0.0, 0.0], [0.0, 0.6, 0.0]])
+    points = np.vstack([block, lone])
+    observed = np.zeros(len(points), dtype=bool)
+    observed[-1] = True  # the second lone cell holds an observed point
+    common = dict(faces=np.zeros((0, 3), int), center=np.array([0.1, 0.1, 0.1]), yaw=0.0,
+                  size=np.array([1.6, 1.6, 1.6]), class_id=VEHICLE, instance_id=3)
+    kept_all = object_voxel_indices(PlacedObject(points, **common), GRID, fill=False)
+    thinned = object_voxel_indices(PlacedObject(points, **common, min_points_per_voxel=4, anchors=observed), GRID,
+                                   fill=False)
+    lone_voxels = {tuple(v) for v in np.floor((lone + 0.1 - GRID.lower) / 0.25).astype(int)}
+    assert lone_voxels <= {tuple(v) for v in kept_all}
+    kept = {tuple(v) for v in thinned}
+    observed_voxel = tuple(np.floor((lone[1] + 0.1 - GRID.lower) / 0.25).astype(int))
+    unobserved_voxel = tuple(np.floor((lone[0] + 0.1 - GRID.lower) / 0.25).astype(int))
+    assert observed_voxel in kept and unobserved_voxel not in kept
+    block_voxels = {tuple(v) for v in np.floor((block + 0.1 - GRID.lower) / 0.25).astype(int)}
+    crowded = crowded_or_anchored(block + 0.1, None, 4, GRID)
+    assert {tuple(v) for v in np.floor((block[crowded] + 0.1 - GRID.lower) / 0.25).astype(int)} <= kept
+    assert len(kept & block_voxels) >= 1
