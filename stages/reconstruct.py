@@ -30,8 +30,14 @@ from nuplan_occ.recon import ReconParams, Surface, reconstruct
 
 @dataclass(frozen=True)
 class ReconstructParams:
-    """method / object_method: "nksr" | "poisson" | "none". mask_distance_m: the background surface is
-    trimmed where it is farther than this from every aggregated point (ReconParams.mask_distance).
+    """method / object_method: "nksr" | "poisson" | "none". mask_distance_m / object_mask_distance_m: the
+    background / an object's surface is trimmed where it is farther than this from every aggregated point
+    (ReconParams.mask_distance). 0.2 m for the background, measured on the bench build against 0.5 / 0.4 /
+    0.3 / 0.15 m: occupied IoU 0.896 / 0.909 / 0.921 / 0.924, trail voxels 484 / 318 / 164 / 108, at 0.2 m
+    IoU 0.926, mIoU 0.755, 133 trails, ground holes unchanged at 1.4 % (the ground fill bridges what the
+    trim opens): the solver's surface bulges where far LiDAR rings leave the aggregate sparse. Objects
+    (bicycles; vehicles and barriers use their carved solids): bicycle IoU 0.67 / 0.69 / 0.61 / 0.55 at
+    0.5 / 0.2 / 0.15 / 0.1 m (few bicycles: a noisy figure).
     ground_fill: add the ground height field of the aggregate (fbsa.ground_fill; triangles with edges up
     to ground_fill_max_edge_m) to a meshed background, bridging the gaps between far LiDAR rings (10 m
     chosen by measurement on the synthetic `small` preset: occupied IoU 0.70 without, 0.73 / 0.79 / 0.83
@@ -45,7 +51,8 @@ class ReconstructParams:
     method: str = "nksr"
     object_method: str = "nksr"
     min_object_points: int = 200
-    mask_distance_m: float = 0.5
+    mask_distance_m: float = 0.2
+    object_mask_distance_m: float = 0.2
     ground_fill: bool = True
     ground_fill_max_edge_m: float = 10.0
     carve_objects: bool = True
@@ -81,7 +88,8 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
                 object_solids[track] = SolidSamples(cells, observed)
         if len(aggregate.points) >= params.min_object_points:
             object_surfaces[track] = reconstruct(aggregate.points, aggregate.sensor_origins,
-                                                 method=params.object_method, frame="box")
+                                                 method=params.object_method, frame="box",
+                                                 params=ReconParams(mask_distance=params.object_mask_distance_m))
     return {"background_surface": background_surface, "object_surfaces": object_surfaces,
             "object_solids": object_solids}
 
