@@ -77,7 +77,7 @@ def scene_artifacts(data_root: Path, out: Path) -> list[dict[str, Any]]:
 
     params = default_params(PIPELINE)
     tasks = plan_tasks(resolve_logs(data_root), data_root, data_root / "maps", str(out), default_work_root(str(out)), params)
-    wanted = ("scene", "registration", "object_boxes", "semantics", "grids", "background_surface",
+    wanted = ("scene", "registration", "object_boxes", "final_semantics", "grids", "background_surface",
               "background_aggregate", "objects", "object_surfaces")
     return [run_stages(task, PIPELINE, wanted) for task in tasks]
 
@@ -151,7 +151,7 @@ def bench_quality(data_root: Path, out: Path) -> dict[str, Any]:
             center = artifacts["registration"].poses[0][:2, 3]
             layers = NuplanMap(scene.map_path).layers_in_window(center, 150.0, LABEL_LAYERS)
         position_of = {s.token: i for i, s in enumerate(scene.sweeps)}
-        for token, semantics in artifacts["semantics"].items():
+        for token, semantics in artifacts["final_semantics"].items():
             reference = truth[truth.index_of_token(token)]
             mask = reference["mask_lidar"]
             baseline = paper_method_frame(artifacts, token, position_of[token], layers)

@@ -2,8 +2,10 @@
 atomically, and the scene's manifest rows (identity, pose, filter columns, QA figures, status). Frames
 whose sweep failed get a row with status "failed" and the reason. The runner commits the rows.
 
-Inputs: `scene`, `registration`, `grids`, `semantics`, `masks`, `outliers_removed`, `map_status`.
-Outputs: `rows` (manifest rows of the scene).
+Inputs: `scene`, `registration`, `grids`, `final_semantics`, `masks`, `free_cleared`, `outliers_removed`,
+`map_status`, `map_alignment`. Outputs: `rows` (manifest rows of the scene). A row's `ego_to_global` is the
+refined pose corrected by the scene's map alignment: the pose the frame's labels were rasterized with, so
+the map drawn with it lands where the grid says.
 """
 
 from __future__ import annotations
@@ -68,17 +70,18 @@ def run(inputs: dict, params: WriteParams) -> dict:
                              scene_name=task.scene_name, frame_index=sweep.index, token=sweep.token,
                              timestamp_us=sweep.timestamp_us, ego_to_global=map_poses[position], arrays={},
                              columns=columns)
-        if sweep.token not in inputs["semantics"]:
+        if sweep.token not in inputs["final_semantics"]:
             record.status, record.failure_reason = "failed", sweep.failure or "frame was not built"
             records.append(record)
             continue
         grids = inputs["grids"][sweep.token]
-        semantics = inputs["semantics"][sweep.token]
+        semantics = inputs["final_semantics"][sweep.token]
         arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow,
                   **inputs["masks"].get(sweep.token, {})}
         record.arrays = {name: arrays[name] for name in params.members if name in arrays}
         columns["qa_point_coverage"] = point_coverage(sweep.cloud.xyz, semantics > 0)
         columns["qa_occupied_voxels"] = int((semantics > 0).sum())
+        columns["qa_free_space_cleared"] = int(inputs["free_cleared"].get(sweep.token, 0))
         if "mask_lidar" in arrays:
             columns["qa_lidar_observed_fraction"] = float(arrays["mask_lidar"].mean())
         records.append(record)
@@ -86,6 +89,6 @@ def run(inputs: dict, params: WriteParams) -> dict:
     return {"rows": writer.write_shard(task.shard_key, records)}
 
 
-STAGE = Stage("write", inputs=("scene", "registration", "grids", "semantics", "masks", "outliers_removed", "map_status",
-                                "map_alignment"),
+STAGE = Stage("write", inputs=("scene", "registration", "grids", "final_semantics", "masks", "free_cleared",
+                                "outliers_removed", "map_status", "map_alignment"),
               outputs=("rows",), params_type=WriteParams, run=run, code=("nuplan_occ.storage",), doc=__doc__ or "")
