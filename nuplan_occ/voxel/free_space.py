@@ -5,7 +5,8 @@ The background surface of a frame comes from the whole scene's aggregate. Where 
 show empty space: the ground surface bulging one voxel up along a mover's path, the height-field fill
 bridging a road to a raised walkway across a gap. A background voxel is cleared (made empty) when
 
-- this frame's rays passed through it (observed FREE: a ray crossed it before its return),
+- rays passed through it (observed FREE: a ray crossed it before its return), this frame's or, as the
+  background is static, another output frame's of the scene,
 - no aggregated background point lies in it (nothing was ever measured there), and
 - its centre lies more than `ground_margin_m` above the local ground height (the ground voxel itself is
   never cleared: rays graze it before they reach the ground further on).
@@ -29,21 +30,40 @@ def point_support(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.n
     return support
 
 
-def unsupported_free_voxels(occupied_background: np.ndarray, observation: np.ndarray, support: np.ndarray,
-                            ground_height: np.ndarray | None, grid: GridSpec = DEFAULT_GRID,
-                            ground_margin_m: float = 0.2) -> np.ndarray:
-    """bool (X, Y, Z): background voxels to clear (see the module doc).
-
-    occupied_background: bool (X, Y, Z); observation: uint8 (X, Y, Z) from `lidar_observation`;
-    support: bool (X, Y, Z) from `point_support`; ground_height: (X, Y) metres in the ego frame, NaN where
-    unknown (such columns are left alone); None leaves everything."""
-    for name, array in (("occupied_background", occupied_background), ("observation", observation),
-                        ("support", support)):
+def clearable_background(occupied_background: np.ndarray, support: np.ndarray, ground_height: np.ndarray | None,
+                         grid: GridSpec = DEFAULT_GRID, ground_margin_m: float = 0.2) -> np.ndarray:
+    """bool (X, Y, Z): background voxels that free-space evidence may clear: occupied, holding no aggregated
+    point (support: bool (X, Y, Z) from `point_support`) and with the centre more than ground_margin_m above
+    the local ground (ground_height (X, Y), metres in the ego frame; NaN columns and None are left alone)."""
+    for name, array in (("occupied_background", occupied_background), ("support", support)):
         if tuple(array.shape) != tuple(grid.shape):
-            raise ValueError(f"unsupported_free_voxels: {name} has shape {array.shape}, expected {grid.shape}")
+            raise ValueError(f"clearable_background: {name} has shape {array.shape}, expected {grid.shape}")
     if ground_height is None:
         return np.zeros(grid.shape, dtype=bool)
     z_centres = grid.z_min + (np.arange(grid.shape[2]) + 0.5) * grid.voxel_size
     with np.errstate(invalid="ignore"):
         above_ground = z_centres[None, None, :] > np.asarray(ground_height)[:, :, None] + ground_margin_m
-    return occupied_background & (observation == FREE) & ~support & above_ground
+    return occupied_background & ~support & above_ground
+
+
+def packed_free(observation: np.ndarray) -> np.ndarray:
+    """The FREE voxels of an observation grid (uint8 (X, Y, Z), see `lidar_observation`) as np.packbits of
+    the flat C-order grid: 1 bit per voxel (640 KB for the 400 x 400 x 32 grid)."""
+    return np.packbits((np.asarray(observation) == FREE).reshape(-1))
+
+
+def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: list[np.ndarray], free_bits: list[np.ndarray],
+                         grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """(N,) bool: voxel centres (N, 3, this frame's ego frame, m) that lie in a voxel another frame's rays
+    crossed (set in that frame's `packed_free` bits, its grid reached by T_other_from_ego, 4x4). The
+    background is static: space any frame saw through holds no background, whatever moved there at other
+    times."""
+    n_bytes = (int(np.prod(grid.shape)) + 7) // 8
+    free = np.zeros(len(centres_ego), dtype=bool)
+    for T, bits in zip(T_other_from_ego, free_bits):
+        if bits.shape != (n_bytes,):
+            raise ValueError(f"free_in_other_frames: packed bits have shape {bits.shape}, expected ({n_bytes},)")
+        idx, inside = grid.point_to_index(np.asarray(centres_ego, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+        flat = (idx[:, 0] * grid.shape[1] + idx[:, 1]) * grid.shape[2] + idx[:, 2]
+        free |= inside & ((bits[flat >> 3] >> (7 - (flat & 7))) & 1).astype(bool)
+    return free

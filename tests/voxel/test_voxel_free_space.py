@@ -1,59 +1,74 @@
-"""Free-space consistency: a ground bulge the frame's rays cross is cleared; the ground voxel, measured
-voxels and columns without a ground estimate are kept."""
+"""Free-space consistency: a ground bulge rays cross is cleared, by this frame's rays or another frame's
+(moved into this frame's grid); the ground voxel, measured voxels and columns without a ground estimate
+are kept."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
-from nuplan_occ.voxel.free_space import point_support, unsupported_free_voxels
-from nuplan_occ.voxel.visibility import FREE, OCCUPIED, lidar_observation
+from nuplan_occ.voxel.free_space import clearable_background, free_in_other_frames, packed_free, point_support
+from nuplan_occ.voxel.visibility import FREE, lidar_observation
 
 GRID = GridSpec(x_min=-5, x_max=5, y_min=-5, y_max=5, z_min=-1, z_max=1, voxel_size=0.25)
 GROUND_Z = -0.86  # inside layer 0 ([-1, -0.75))
 
 
-def scene():
-    """Ground voxels everywhere (layer 0) plus a one-voxel bulge above it at x in [2, 3] (layer 1)."""
+def scene(sensor_x: float = 0.0):
+    """Ground voxels everywhere (layer 0) plus a one-voxel bulge above it at x in [2, 3] (layer 1); rays
+    from a sensor at (sensor_x, 0, 0) to ground returns at x in [3.2, 4.8] graze over the ground layer."""
     occupied = np.zeros(GRID.shape, dtype=bool)
     occupied[:, :, 0] = True
     bulge = np.zeros(GRID.shape, dtype=bool)
     bulge[28:32, 18:22, 1] = True
     occupied |= bulge
     ground = np.full(GRID.shape[:2], GROUND_Z)
-    # rays from a sensor 0.9 m up to ground returns beyond the bulge graze over the ground layer
-    xs = np.linspace(3.2, 4.8, 30)
-    ys = np.linspace(-0.4, 0.4, 9)
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    X, Y = np.meshgrid(np.linspace(3.2, 4.8, 30), np.linspace(-0.4, 0.4, 9), indexing="ij")
     returns = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, GROUND_Z)])
-    observation = lidar_observation(returns, np.array([0.0, 0.0, 0.0]), GRID)
+    observation = lidar_observation(returns - [sensor_x, 0.0, 0.0], np.zeros(3), GRID)  # in that sensor's grid
     return occupied, bulge, ground, returns, observation
 
 
 def test_a_bulge_the_rays_cross_is_cleared_and_the_ground_stays():
     occupied, bulge, ground, returns, observation = scene()
-    crossed = bulge & (observation == FREE)
-    assert crossed.any()  # the set-up: rays do cross the bulge
-    support = point_support(returns, GRID)
-    clear = unsupported_free_voxels(occupied, observation, support, ground, GRID)
-    assert np.array_equal(clear, crossed)
-    assert not clear[:, :, 0].any()  # ground voxels, grazed by the same rays, are never cleared
-    assert (observation[:, :, 0] == FREE).any()
+    candidates = clearable_background(occupied, point_support(returns, GRID), ground, GRID)
+    assert np.array_equal(candidates, bulge)  # unmeasured and above the ground voxel
+    centres = GRID.index_to_center(np.argwhere(candidates))
+    free = free_in_other_frames(centres, [np.eye(4)], [packed_free(observation)], GRID)
+    crossed = (observation == FREE)[tuple(np.argwhere(candidates).T)]
+    assert crossed.any() and np.array_equal(free, crossed)
+    assert (observation[:, :, 0] == FREE).any()  # the same rays graze ground voxels, which are no candidates
+
+
+def test_another_frames_rays_clear_what_this_frame_did_not_see():
+    occupied, bulge, ground, returns, _ = scene()
+    # the other frame's ego sits 1 m further along x: its grid is this one shifted by -1 m
+    _, _, _, _, other = scene(sensor_x=1.0)
+    T_other_from_this = make_transform(np.eye(3), [-1.0, 0.0, 0.0])
+    centres = GRID.index_to_center(np.argwhere(bulge))
+    nothing_here = np.zeros(GRID.shape, dtype=np.uint8)
+    own_only = free_in_other_frames(centres, [np.eye(4)], [packed_free(nothing_here)], GRID)
+    both = free_in_other_frames(centres, [np.eye(4), T_other_from_this], [packed_free(nothing_here), packed_free(other)], GRID)
+    assert not own_only.any() and both.any()
+    moved = centres + [-1.0, 0.0, 0.0]
+    idx, inside = GRID.point_to_index(moved)
+    assert np.array_equal(both, inside & (other[tuple(idx.T)] == FREE))
 
 
 def test_measured_voxels_and_unknown_ground_are_kept():
-    occupied, bulge, ground, returns, observation = scene()
+    occupied, bulge, ground, returns, _ = scene()
     support = point_support(np.vstack([returns, GRID.index_to_center(np.argwhere(bulge))]), GRID)
-    assert not unsupported_free_voxels(occupied, observation, support, ground, GRID).any()
+    assert not clearable_background(occupied, support, ground, GRID).any()
     no_ground = np.full(GRID.shape[:2], np.nan)
-    assert not unsupported_free_voxels(occupied, observation, point_support(returns, GRID), no_ground, GRID).any()
-    assert not unsupported_free_voxels(occupied, observation, point_support(returns, GRID), None, GRID).any()
-    occupied_obs = np.where(bulge, OCCUPIED, observation).astype(np.uint8)  # a return inside: not free
-    assert not unsupported_free_voxels(occupied, occupied_obs, point_support(returns, GRID), ground, GRID).any()
+    assert not clearable_background(occupied, point_support(returns, GRID), no_ground, GRID).any()
+    assert not clearable_background(occupied, point_support(returns, GRID), None, GRID).any()
 
 
 def test_shapes_are_checked():
     occupied, _, ground, returns, observation = scene()
-    with pytest.raises(ValueError, match="observation"):
-        unsupported_free_voxels(occupied, observation[:-1], point_support(returns, GRID), ground, GRID)
+    with pytest.raises(ValueError, match="support"):
+        clearable_background(occupied, point_support(returns, GRID)[:-1], ground, GRID)
+    with pytest.raises(ValueError, match="packed bits"):
+        free_in_other_frames(np.zeros((1, 3)), [np.eye(4)], [packed_free(observation)[:-1]], GRID)
