@@ -188,21 +188,29 @@ def summarize_metrics(metrics: list[dict], trails: list[int], holes: list[float]
 
 
 def bench_fbsa(data_root: Path, out: Path) -> dict[str, Any]:
-    """Pose error of logged and refined poses against the true poses (synthetic truth), per sweep; runs
-    only the stages up to registration (cached by `out`'s work folder)."""
+    """Pose error of logged, refined and map-aligned poses (refined, corrected by the scene's alignment of
+    the map to the LiDAR's paint, as written to the manifest) against the true poses (synthetic truth), per
+    sweep; runs only the stages up to registration (cached by `out`'s work folder)."""
     from nuplan_occ.fbsa.metrics import pose_errors
+    from nuplan_occ.io.maps import LABEL_LAYERS, NuplanMap
     from stages import PIPELINE
+    from stages.label import align_map
 
     params = default_params(PIPELINE)
     tasks = plan_tasks(resolve_logs(data_root), data_root, data_root / "maps", str(out), default_work_root(str(out)), params)
     truth = open_dataset(str(data_root / "truth"))
-    logged, refined, true, accepted = [], [], [], []
+    logged, refined, aligned, true, accepted = [], [], [], [], []
     for task in tasks:
         artifacts = run_stages(task, PIPELINE, ("scene", "registration"))
         scene, registration = artifacts["scene"], artifacts["registration"]
+        correction = np.eye(4)
+        if scene.map_path:
+            layers = NuplanMap(scene.map_path).layers_in_window(registration.poses[0][:2, 3], 150.0, LABEL_LAYERS)
+            correction = align_map(scene, registration.poses, layers, params["label"])[0].correction
         for position, sweep in enumerate(scene.sweeps):
             logged.append(sweep.logged_pose)
             refined.append(registration.poses[position])
+            aligned.append(correction @ registration.poses[position])
             true.append(truth.get(truth.index_of_token(sweep.token), keys=())["ego_to_global"])
             accepted.append(bool(registration.accepted[position]))
     truth_poses = np.stack(true)
@@ -211,6 +219,7 @@ def bench_fbsa(data_root: Path, out: Path) -> dict[str, Any]:
         "accepted_fraction": float(np.mean(accepted)),
         "logged": pose_errors(np.stack(logged), truth_poses).medians(),
         "refined": pose_errors(np.stack(refined), truth_poses).medians(),
+        "map_aligned": pose_errors(np.stack(aligned), truth_poses).medians(),
     }
 
 
@@ -302,7 +311,7 @@ def render_markdown(report: dict) -> str:
         keys = list(f["logged"])
         parts += [f"## Pose refinement, {title} (median absolute error against the true poses)", "",
                   f"{f['frames']} sweeps, {f['accepted_fraction']:.0%} corrections accepted. Targets: <= 5 cm, <= 0.1 deg.", "",
-                  _table(["poses", *keys], [[name, *[f[name][k] for k in keys]] for name in ("logged", "refined")]), ""]
+                  _table(["poses", *keys], [[name, *[f[name][k] for k in keys]] for name in ("logged", "refined", "map_aligned") if name in f]), ""]
     if "recon" in report:
         keys = ["time_s", "peak_mb", "chamfer", "precision@0.1", "recall@0.1", "fscore@0.1", "precision@0.25",
                 "recall@0.25", "fscore@0.25"]

@@ -33,7 +33,8 @@ class LabelParams:
     align_to_paint: correct the scene's poses against the map before rasterizing it (see
     nuplan_occ.voxel.map_align): ground returns at least paint_intensity_ratio times brighter than the ground
     at the same range, from every align_sweep_stride-th sweep, are aligned to the painted lines; a
-    correction moving the scene more than align_max_offset_m is refused (recorded, map used as is).
+    correction moving the scene more than align_max_offset_m or turning it more than align_max_yaw_deg is
+    refused (recorded, map used as is).
     confirm_stop_lines (with align_to_paint): a stop polygon's edge is painted as road_line only where the
     flat-ground returns in its strip are mostly bright (nuplan_occ.voxel.map_align.paint_confirmed). The
     map gives stop polygons, not which edge carries the paint (nuPlan's format leaves that open); painting
@@ -45,6 +46,7 @@ class LabelParams:
     paint_intensity_ratio: float = 3.0
     align_sweep_stride: int = 2
     align_max_offset_m: float = 0.5
+    align_max_yaw_deg: float = 1.0
     confirm_stop_lines: bool = True
 
 
@@ -56,7 +58,7 @@ def align_map(scene, poses: np.ndarray, layers: dict, params: LabelParams) -> tu
     returns = ground_returns([scene.sweeps[i].cloud.xyz for i in used], [scene.sweeps[i].cloud.intensity for i in used],
                              poses[used], scene.sensor_origin_ego, ratio=params.paint_intensity_ratio)
     alignment = align_points_to_lines(returns.xy[returns.bright], painted_lines(layers),
-                                      max_offset_m=params.align_max_offset_m)
+                                      max_offset_m=params.align_max_offset_m, max_yaw_deg=params.align_max_yaw_deg)
     if not params.confirm_stop_lines:
         return alignment, None
     edges = polygon_edges(map_geometries(layers, STOP_LINE_LAYERS))

@@ -195,7 +195,7 @@ def _best_translation(point_index: np.ndarray, normal: np.ndarray, residual: np.
 
 
 def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_offset_m: float = 0.5,
-                          paint_half_width_m: float = 0.075, search_step_m: float = 0.02, gate_m: float = 0.15,
+                          max_yaw_deg: float = 1.0, paint_half_width_m: float = 0.075, search_step_m: float = 0.02, gate_m: float = 0.15,
                           huber_m: float = 0.05, prior_fraction: float = 0.01, min_points: int = 200,
                           iterations: int = 10) -> MapAlignment:
     """2D rigid correction moving paint points onto the map's painted lines.
@@ -211,7 +211,7 @@ def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_o
        the points constraining each of dx, dy and the yaw's motion at the points' RMS radius; it keeps
        directions the lines do not constrain, e.g. along a straight road, where the search left them).
     The correction is refused (identity, `applied` False, `reason` set) with fewer than min_points points
-    near a line, or when it would move the scene more than max_offset_m at the points' extent."""
+    near a line, or when its translation exceeds max_offset_m or its rotation max_yaw_deg."""
     xy = np.asarray(points_xy_global, dtype=np.float64).reshape(-1, 2)
     lines = np.asarray([g for g in np.asarray(lines, dtype=object).reshape(-1)
                         if g is not None and not shapely.is_empty(g)], dtype=object)
@@ -253,11 +253,10 @@ def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_o
         if np.abs(step[:2]).max() < 1e-4 and abs(step[2]) < 1e-6:
             break
     dist_after = _nearest_distance(tree, _moved(local, params) + pivot)
-    reach = float(np.max(np.linalg.norm(local, axis=1)))
-    shift = float(np.hypot(params[0], params[1]) + abs(params[2]) * reach)
-    if shift > max_offset_m:
+    shift, turn = float(np.hypot(params[0], params[1])), float(np.degrees(abs(params[2])))
+    if shift > max_offset_m or turn > max_yaw_deg:
         return MapAlignment(n_points=int(used.sum()), rms_before=rms_before, rms_after=float("nan"), **refused,
-                            reason=f"correction of {shift:.2f} m exceeds {max_offset_m} m")
+                            reason=f"correction of {shift:.2f} m / {turn:.2f} deg exceeds {max_offset_m} m / {max_yaw_deg} deg")
     return MapAlignment(float(params[0]), float(params[1]), float(params[2]), (float(pivot[0]), float(pivot[1])),
                         int(used.sum()), rms_before, _rms(dist_after[dist_after <= gate_m]), True)
 

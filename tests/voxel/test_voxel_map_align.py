@@ -85,8 +85,13 @@ def test_refuses_without_enough_paint_and_beyond_the_allowed_offset():
 
     observed = misplace(strip_points(lines, 500, rng), 0.4, 0.3, 0.0)
     far = align_points_to_lines(observed, lines, max_offset_m=0.2)
-    moved = np.linalg.norm(apply(far.correction, observed) - observed, axis=1)
-    assert moved.max() <= 0.2 + 1e-9  # never a move beyond the allowed offset
+    assert np.hypot(far.dx, far.dy) <= 0.2 + 1e-9  # never a move beyond the allowed offset
+
+    turned = misplace(strip_points(lines, 500, rng), 0.0, 0.0, np.radians(0.3))
+    assert align_points_to_lines(turned, lines).applied
+    refused = align_points_to_lines(turned, lines, max_yaw_deg=0.1)
+    assert not refused.applied and "deg" in refused.reason
+    assert np.array_equal(refused.correction, np.eye(4))
 
 
 def test_flat_ground_leaves_out_columns_at_a_curb():
