@@ -6,14 +6,14 @@ frame) accumulated (rigid classes over the whole scene, pedestrians over a short
 For space carving, the background rays of each frame that cross a rigid track's box are kept in that
 box's frame (they show where the object is not).
 
-Inputs: `scene`, `splits`, `background`, `registration`, `object_boxes`, `object_points`.
+Inputs: `scene`, `background`, `registration`, `object_boxes`, `object_points`.
 Outputs: `background_aggregate` (BackgroundAggregate, scene frame), `objects` (track -> ObjectAggregate),
 `object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -87,9 +87,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                occupied_ratio=params.dynamic_occupied_ratio)
         background = BackgroundAggregate(background.points[~dynamic], background.sensor_origins[~dynamic],
                                          background.frame_ids[~dynamic], background.T_global_from_scene)
-    object_splits = [replace(inputs["splits"][i], foreground={t: p for t, (p, _) in inputs["object_points"][i].items()},
-                             foreground_origins={t: o for t, (_, o) in inputs["object_points"][i].items()}) for i in ok]
-    objects = aggregate_objects(object_splits, [inputs["object_boxes"][i] for i in ok],
+    objects = aggregate_objects([inputs["object_points"][i] for i in ok], [inputs["object_boxes"][i] for i in ok],
                                 rigid_categories=params.rigid_categories)
     through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for i in ok:
@@ -104,7 +102,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     return {"background_aggregate": background, "objects": objects, "object_through_rays": object_through_rays}
 
 
-STAGE = Stage("aggregate", inputs=("scene", "splits", "background", "registration", "object_boxes", "object_points"),
+STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "object_boxes", "object_points"),
               outputs=("background_aggregate", "objects", "object_through_rays"), params_type=AggregateParams,
               run=run,
               code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split"), doc=__doc__ or "")

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
-from nuplan_occ.fbsa.split import FrameSplit
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.io.types import Boxes
 
@@ -119,16 +118,18 @@ class ObjectAggregate:
 
 
 def aggregate_objects(
-    splits: list[FrameSplit],
+    track_points: list[dict[str, tuple[np.ndarray, np.ndarray]]],
     boxes_per_frame: list[Boxes],
     rigid_categories: tuple[str, ...] = RIGID_CATEGORIES,
 ) -> dict[str, ObjectAggregate]:
-    """Per-track aggregation of the foreground points of all frames (already in each track's box frame).
+    """Per-track aggregation of the foreground points of all frames.
 
-    splits[i] and boxes_per_frame[i] belong to frame i. A track's category is its most frequent box category and
-    its size the per-axis median of its box sizes; tracks with boxes but no points get empty point arrays."""
-    if len(splits) != len(boxes_per_frame):
-        raise FbsaInputError(f"aggregate_objects: {len(splits)} splits but {len(boxes_per_frame)} box sets")
+    track_points[i] (frame i): track -> (points (n, 3), sensor origins (n, 3)), both in the track's box frame
+    (`FrameSplit.track_points`, or the track stage's corrected `object_points`); boxes_per_frame[i]: the
+    frame's boxes. A track's category is its most frequent box category and its size the per-axis median of
+    its box sizes; tracks with boxes but no points get empty point arrays."""
+    if len(track_points) != len(boxes_per_frame):
+        raise FbsaInputError(f"aggregate_objects: {len(track_points)} frames of points but {len(boxes_per_frame)} box sets")
     categories: dict[str, Counter] = {}
     sizes: dict[str, list[np.ndarray]] = {}
     for boxes in boxes_per_frame:
@@ -138,12 +139,12 @@ def aggregate_objects(
     points: dict[str, list[np.ndarray]] = {t: [] for t in sizes}
     origins: dict[str, list[np.ndarray]] = {t: [] for t in sizes}
     ids: dict[str, list[np.ndarray]] = {t: [] for t in sizes}
-    for i, split in enumerate(splits):
-        for token, pts in split.foreground.items():
+    for i, frame in enumerate(track_points):
+        for token, (pts, pts_origins) in frame.items():
             if token not in points:
                 raise FbsaInputError(f"aggregate_objects: frame {i} has points of track {token} but no box of it")
             points[token].append(pts)
-            origins[token].append(split.foreground_origins[token])
+            origins[token].append(pts_origins)
             ids[token].append(np.full(len(pts), i, dtype=np.int32))
     out = {}
     for token in sizes:

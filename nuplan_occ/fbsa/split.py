@@ -89,6 +89,10 @@ class FrameSplit:
     n_shell: int
     n_ego: int
 
+    def track_points(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """track token -> (points, sensor origins), both in the track's box frame (see `aggregate_objects`)."""
+        return {track: (points, self.foreground_origins[track]) for track, points in self.foreground.items()}
+
 
 def ego_footprint_boxes(ego: VehicleFootprint = PACIFICA, margin_m: float = 0.0) -> Boxes:
     """The ego vehicle as one Boxes entry in the ego frame, enlarged by margin_m on every side."""

@@ -75,7 +75,7 @@ def test_background_crop_keeps_points_inside_some_frame_box():
 def test_objects_keep_their_frames_and_rigidity():
     splits = [_split({"a": np.ones((2, 3)), "p": np.full((3, 3), i)}) for i in range(5)]
     boxes = [_boxes(["a", "p", "z"], ["vehicle", "pedestrian", "barrier"], [4.0 + 0.1 * i, 0.6, 1.0]) for i in range(5)]
-    objects = aggregate_objects(splits, boxes)
+    objects = aggregate_objects([s.track_points() for s in splits], boxes)
     assert set(objects) == {"a", "p", "z"}
     a, p, z = objects["a"], objects["p"], objects["z"]
     assert a.rigid and not p.rigid and z.rigid and a.category == "vehicle"
@@ -85,6 +85,6 @@ def test_objects_keep_their_frames_and_rigidity():
     np.testing.assert_array_equal(np.unique(pts[:, 0]), [1.0, 2.0, 3.0])
     assert len(origins) == 9 and len(a.points_for_frame(0, window=0)[0]) == 10
     with pytest.raises(FbsaInputError):
-        aggregate_objects(splits, boxes[:4])
+        aggregate_objects([s.track_points() for s in splits], boxes[:4])
     with pytest.raises(FbsaInputError):
-        aggregate_objects([_split({"ghost": np.ones((1, 3))})], [_boxes([], [], [])])
+        aggregate_objects([_split({"ghost": np.ones((1, 3))}).track_points()], [_boxes([], [], [])])

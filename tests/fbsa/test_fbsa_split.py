@@ -92,7 +92,7 @@ def test_split_keeps_moving_objects_out_of_the_background(seq):
     assert moving_leak_fraction(np.concatenate(bg_ids), all_ids, [car, ped]) == 0.0
     assert sum(s.n_shell for s in splits) > 0
 
-    objects = aggregate_objects(splits, boxes_all)
+    objects = aggregate_objects([s.track_points() for s in splits], boxes_all)
     assert objects["car"].rigid and not objects["ped"].rigid
     np.testing.assert_allclose(objects["car"].size, seq.world.car_size)
     # In the box frame the moving car's points of all frames lie on the true box surface (the returns that
