@@ -57,12 +57,11 @@ def run(inputs: dict, params: VisibilityParams) -> dict:
     for position, sweep in frames:
         semantics = inputs["semantics"][sweep.token].copy()
         cleared[sweep.token] = 0
-        if params.lidar:
-            if params.clear_free_space:
-                clear = free_space_clear(position, sweep.token, frames, free_bits, poses, background,
-                                         inputs["grids"][sweep.token], semantics, params)
-                semantics[clear] = 0
-                cleared[sweep.token] = int(clear.sum())
+        if params.lidar and params.clear_free_space:
+            clear = free_space_clear(position, sweep.token, frames, free_bits, poses, background,
+                                     inputs["grids"][sweep.token], semantics, params)
+            semantics[clear] = 0
+            cleared[sweep.token] = int(clear.sum())
         final[sweep.token] = semantics
         if params.camera and scene.cameras:
             masks[sweep.token]["mask_camera"] = camera_visibility(
@@ -78,7 +77,7 @@ def free_space_clear(position: int, token: str, frames: list, free_bits: dict, p
     support = point_support(transform_points(T_ego_from_global @ background.T_global_from_scene, background.points))
     candidates = clearable_background(grids.occupied_background & (semantics > 0), support, grids.ground_height,
                                       DEFAULT_GRID, params.free_space_ground_margin_m)
-    others = [(other, sweep.token) for other, sweep in frames if sweep.token != token and params.free_space_other_frames]
+    others = [(other, sweep.token) for other, sweep in frames if sweep.token != token] if params.free_space_other_frames else []
     rest = np.argwhere(candidates)
     free = free_in_other_frames(DEFAULT_GRID.index_to_center(rest),
                                 [np.eye(4)] + [invert_transform(poses[other]) @ poses[position] for other, _ in others],

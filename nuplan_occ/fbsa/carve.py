@@ -33,6 +33,16 @@ def lattice_shape(size: np.ndarray, resolution: float) -> tuple[np.ndarray, np.n
     return counts, np.asarray(size, np.float64) / counts
 
 
+def lattice_cells(xyz_box: np.ndarray, size: np.ndarray, edge: np.ndarray, counts: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(inside (N,) bool, flat C-order cell index of each inside point (K,)) of points xyz_box (N, 3, box
+    frame) in the lattice (counts, edge) = `lattice_shape(size, ...)` of a box of `size`."""
+    ijk = np.floor((np.asarray(xyz_box, np.float64).reshape(-1, 3) + np.asarray(size, np.float64) / 2.0) / edge).astype(np.int64)
+    inside = np.all((ijk >= 0) & (ijk < counts), axis=1)
+    ijk = ijk[inside]
+    return inside, (ijk[:, 0] * counts[1] + ijk[:, 1]) * counts[2] + ijk[:, 2]
+
+
 def clip_segments_to_box(starts: np.ndarray, ends: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Parameters [t0, t1] of the parts of segments start + t (end - start), t in [0, 1], inside the box
     [-half, half] (slab method); segments missing the box come back with t0 > t1. starts, ends (N, 3)."""
@@ -91,12 +101,6 @@ def carve_object_solid(points_box: np.ndarray, origins_box: np.ndarray, size: np
     step = resolution / 2.0
     stop = step if stop_before_m is None else float(stop_before_m)
 
-    def flat_cells(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ijk = np.floor((xyz + half) / edge).astype(np.int64)
-        ok = np.all((ijk >= 0) & (ijk < counts), axis=1)
-        ijk = ijk[ok]
-        return ok, (ijk[:, 0] * counts[1] + ijk[:, 1]) * counts[2] + ijk[:, 2]
-
     n_cells = int(np.prod(counts))
     traversed = np.zeros(n_cells, np.int64)
     starts, ends = origins, points
@@ -121,11 +125,11 @@ def carve_object_solid(points_box: np.ndarray, origins_box: np.ndarray, size: np
         owner = np.repeat(np.arange(start, end), n)
         offset = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
         t = t0[owner] + offset * step / length[owner]
-        ok, cells = flat_cells(rays_o[owner] + t[:, None] * rays_d[owner])
+        ok, cells = lattice_cells(rays_o[owner] + t[:, None] * rays_d[owner], size, edge, counts)
         ray_cells = np.unique(owner[ok] * n_cells + cells) % n_cells
         traversed += np.bincount(ray_cells, minlength=n_cells)
     solid = traversed < min_rays
-    solid[flat_cells(points)[1]] = True
+    solid[lattice_cells(points, size, edge, counts)[1]] = True
     ijk = np.stack(np.unravel_index(np.flatnonzero(solid), tuple(counts)), axis=1)
     return (ijk + 0.5) * edge - half
 
@@ -145,12 +149,7 @@ def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np
     """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size,
     resolution)`) that hold at least one of points_box (N, 3, box frame)."""
     counts, edge = lattice_shape(size, resolution)
-    half = np.asarray(size, np.float64) / 2.0
-
-    def flat(xyz: np.ndarray) -> np.ndarray:
-        ijk = np.floor((np.asarray(xyz, np.float64).reshape(-1, 3) + half) / edge).astype(np.int64)
-        ok = np.all((ijk >= 0) & (ijk < counts), axis=1)
-        return np.where(ok, (ijk[:, 0] * counts[1] + ijk[:, 1]) * counts[2] + ijk[:, 2], -1)
-
-    held = flat(points_box)
-    return np.isin(flat(cells_box), held[held >= 0])
+    inside, cells = lattice_cells(cells_box, size, edge, counts)
+    held = np.zeros(len(inside), dtype=bool)
+    held[inside] = np.isin(cells, lattice_cells(points_box, size, edge, counts)[1])
+    return held

@@ -111,12 +111,14 @@ def rasterize_bev(layers: dict[str, MapLayer], T_global_from_ego: np.ndarray, gr
         union = shapely.union_all(shapely.make_valid(drivable))
         shapely.prepare(union)
         bev[shapely.intersects_xy(union, gx, gy)] = ROAD
+    if stop_lines is None:
+        stop_geoms = shapely.boundary(_geometries_near(layers, STOP_LINE_LAYERS, area))
+    else:
+        stop_geoms = np.asarray(stop_lines, dtype=object).reshape(-1)
+        stop_geoms = stop_geoms[shapely.intersects(stop_geoms, area)]
     line_sets = [
         (_geometries_near(layers, LINE_LAYERS, area), line_width_m),
-        (shapely.boundary(_geometries_near(layers, STOP_LINE_LAYERS, area)) if stop_lines is None
-         else np.asarray(stop_lines, dtype=object).reshape(-1)[shapely.intersects(stop_lines, area)]
-         if len(stop_lines) else np.zeros(0, dtype=object),
-         line_width_m if stop_line_width_m is None else stop_line_width_m),
+        (stop_geoms, line_width_m if stop_line_width_m is None else stop_line_width_m),
     ]
     for geoms, width in line_sets:
         if len(geoms):

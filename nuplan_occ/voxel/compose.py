@@ -72,17 +72,19 @@ class FrameGrids:
 
 def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_count: int,
                         grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
-    """(N,) bool: points (N, 3, ego frame, m) whose voxel holds at least min_count of them or an anchor
-    point (anchors (N,) bool or None)."""
-    idx = np.floor((np.asarray(points_ego, dtype=np.float64) - grid.lower) / grid.voxel_size).astype(np.int64)
-    if len(idx) == 0:
-        return np.zeros(0, dtype=bool)
-    _, inverse, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+    """(N,) bool: points (N, 3, ego frame, m) inside the grid whose voxel holds at least min_count of them or
+    an anchor point (anchors (N,) bool or None)."""
+    idx, inside = grid.point_to_index(points_ego)
+    keep = np.zeros(len(idx), dtype=bool)
+    if not inside.any():
+        return keep
+    _, inverse, counts = np.unique(idx[inside], axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
-    keep = counts >= min_count
+    crowded = counts >= min_count
     if anchors is not None:
-        keep |= np.bincount(inverse, weights=np.asarray(anchors, dtype=bool), minlength=len(counts)) > 0
-    return keep[inverse]
+        crowded |= np.bincount(inverse, weights=np.asarray(anchors, dtype=bool)[inside], minlength=len(counts)) > 0
+    keep[inside] = crowded[inverse]
+    return keep
 
 
 def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill: bool = True,

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from nuplan_occ.geometry import transform_points
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.voxel.visibility import FREE
 
@@ -63,7 +64,7 @@ def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: list[np.ndar
     for T, bits in zip(T_other_from_ego, free_bits):
         if bits.shape != (n_bytes,):
             raise ValueError(f"free_in_other_frames: packed bits have shape {bits.shape}, expected ({n_bytes},)")
-        idx, inside = grid.point_to_index(np.asarray(centres_ego, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+        idx, inside = grid.point_to_index(transform_points(T, centres_ego))
         flat = (idx[:, 0] * grid.shape[1] + idx[:, 1]) * grid.shape[2] + idx[:, 2]
         free |= inside & ((bits[flat >> 3] >> (7 - (flat & 7))) & 1).astype(bool)
     return free

@@ -20,6 +20,8 @@ import numpy as np
 import shapely
 from scipy import ndimage
 
+from nuplan_occ.geometry import transform_points
+
 
 @dataclass(frozen=True)
 class MapAlignment:
@@ -114,7 +116,7 @@ def ground_returns(clouds_ego: list[np.ndarray], intensities: list[np.ndarray], 
     clouds_ego[i]: (N_i, 3) ego frame of sweep i, m; T_global_from_ego: (S, 4, 4) the sweeps' poses."""
     merged, bright = [], []
     for xyz, values, T in zip(clouds_ego, intensities, T_global_from_ego):
-        merged.append(np.asarray(xyz, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+        merged.append(transform_points(T, xyz))
         with np.errstate(invalid="ignore"):
             bright.append(intensity_ratio(xyz, values, sensor_origin_ego) >= ratio)
     if not merged:
@@ -150,16 +152,18 @@ def paint_confirmed(lines: np.ndarray, returns: GroundReturns, width_m: float, m
     return (total >= min_returns) & (bright >= min_bright_fraction * np.maximum(total, 1))
 
 
-def _foot_and_tangent(lines: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Foot point (K, 2) on lines[k] of shapely points[k], and the line's unit tangent (K, 2) there."""
-    s = shapely.line_locate_point(lines, points)
+def _signed_offsets(lines: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each point xy[k] (K, 2) and line lines[k]: the line's unit normal (K, 2) at the point's foot
+    on it and the point's signed distance along that normal (K,)."""
+    s = shapely.line_locate_point(lines, shapely.points(xy))
     length = shapely.length(lines)
-    ahead = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.minimum(s + 0.05, length)))
-    behind = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.maximum(s - 0.05, 0.0)))
-    foot = shapely.get_coordinates(shapely.line_interpolate_point(lines, s))
+    ahead = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.minimum(s + 0.05, length))).reshape(-1, 2)
+    behind = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.maximum(s - 0.05, 0.0))).reshape(-1, 2)
+    foot = shapely.get_coordinates(shapely.line_interpolate_point(lines, s)).reshape(-1, 2)
     tangent = ahead - behind
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-    return foot.reshape(-1, 2), tangent.reshape(-1, 2)
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    return normal, np.einsum("ij,ij->i", xy - foot, normal)
 
 
 def _line_pairs(xy: np.ndarray, lines: np.ndarray, tree: shapely.STRtree, reach_m: float
@@ -167,16 +171,13 @@ def _line_pairs(xy: np.ndarray, lines: np.ndarray, tree: shapely.STRtree, reach_
     """Every (point, line) pair closer than reach_m: point index (K,), the line's unit normal (K, 2) at the
     foot point and the point's signed distance along it (K,). A point moved by a small d then lies at
     residual + normal . d from that line (the line taken as straight over the move)."""
-    pts = shapely.points(xy)
-    point_index, line_index = tree.query(pts, predicate="dwithin", distance=reach_m)
-    foot, tangent = _foot_and_tangent(lines[line_index], pts[point_index])
-    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-    residual = np.einsum("ij,ij->i", xy[point_index] - foot, normal)
+    point_index, line_index = tree.query(shapely.points(xy), predicate="dwithin", distance=reach_m)
+    normal, residual = _signed_offsets(lines[line_index], xy[point_index])
     return point_index, normal, residual
 
 
-def _best_translation(point_index: np.ndarray, normal: np.ndarray, residual: np.ndarray, n_points: int,
-                      search_m: float, step_m: float, inlier_m: float) -> np.ndarray:
+def _best_translation(point_index: np.ndarray, normal: np.ndarray, residual: np.ndarray, search_m: float,
+                      step_m: float, inlier_m: float) -> np.ndarray:
     """The translation (2,) on a square grid of half size search_m (step step_m) that puts the most points
     within inlier_m of a line; among equal counts the smallest translation (directions the lines leave
     free stay at zero)."""
@@ -195,7 +196,8 @@ def _best_translation(point_index: np.ndarray, normal: np.ndarray, residual: np.
 
 
 def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_offset_m: float = 0.5,
-                          max_yaw_deg: float = 1.0, paint_half_width_m: float = 0.075, search_step_m: float = 0.02, gate_m: float = 0.15,
+                          max_yaw_deg: float = 1.0, paint_half_width_m: float = 0.075, search_step_m: float = 0.02,
+                          gate_m: float = 0.15,
                           huber_m: float = 0.05, prior_fraction: float = 0.01, min_points: int = 200,
                           iterations: int = 10) -> MapAlignment:
     """2D rigid correction moving paint points onto the map's painted lines.
@@ -222,26 +224,24 @@ def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_o
                             reason=f"too few paint points ({len(xy)}) or no painted lines")
     tree = shapely.STRtree(lines)
     point_index, normal, residual = _line_pairs(xy, lines, tree, max_offset_m + paint_half_width_m)
-    near_before = _nearest_distance(tree, xy) <= gate_m
-    rms_before = _rms(_nearest_distance(tree, xy)[near_before])
+    dist_before = _nearest_distance(tree, xy)
+    near_before = dist_before <= gate_m
+    rms_before = _rms(dist_before[near_before])
     if len(np.unique(point_index)) < min_points:
         return MapAlignment(n_points=int(near_before.sum()), rms_before=rms_before, rms_after=float("nan"),
                             **refused, reason=f"only {len(np.unique(point_index))} paint points near a line")
-    start = _best_translation(point_index, normal, residual, len(xy), max_offset_m, search_step_m, paint_half_width_m)
+    start = _best_translation(point_index, normal, residual, max_offset_m, search_step_m, paint_half_width_m)
     local = xy - pivot
     params = np.array([start[0], start[1], 0.0])  # dx, dy, dyaw
     anchor = params.copy()
-    used = np.zeros(len(xy), dtype=bool)
-    for _ in range(iterations):
+    for _ in range(max(1, iterations)):
         moved = _moved(local, params) + pivot
         (_, which), dist = tree.query_nearest(shapely.points(moved), return_distance=True, all_matches=False)
         used = np.asarray(dist) <= gate_m
         if used.sum() < min_points:
             return MapAlignment(n_points=int(used.sum()), rms_before=rms_before, rms_after=float("nan"), **refused,
                                 reason=f"only {int(used.sum())} paint points within {gate_m} m of a line")
-        foot, tangent = _foot_and_tangent(lines[which[used]], shapely.points(moved[used]))
-        normal_used = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-        res = np.einsum("ij,ij->i", moved[used] - foot, normal_used)
+        normal_used, res = _signed_offsets(lines[which[used]], moved[used])
         arm = moved[used] - pivot - params[:2]  # rotated local offsets
         J = np.stack([normal_used[:, 0], normal_used[:, 1],
                       -arm[:, 1] * normal_used[:, 0] + arm[:, 0] * normal_used[:, 1]], axis=1)
