@@ -126,10 +126,12 @@ def _demo_report(out: Path) -> None:
 
 
 def _register_dataset_tools() -> None:
-    """view, eval, stats, validate, export."""
+    """view, eval, stats, validate, export, import-release."""
+    from nuplan_occ import cli_release
     from nuplan_occ.cli_dataset import register
 
     register(app)
+    cli_release.register(app)
 
 
 _register_dataset_tools()

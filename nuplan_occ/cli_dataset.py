@@ -77,18 +77,45 @@ def eval_table(result: dict) -> Table:
     return table
 
 
+FRAME_ROWS_SHOWN = 20
+
+
+def frames_table(result: dict) -> Table:
+    """Rich table of the first FRAME_ROWS_SHOWN per-frame rows of an `evaluate` result."""
+    frames = result["frames"]
+    more = f" (first {FRAME_ROWS_SHOWN}; all in --json)" if len(frames) > FRAME_ROWS_SHOWN else ""
+    table = Table(title=f"per frame{more}")
+    for name in ("token", "IoU", "mIoU", "occupied built", "occupied truth"):
+        table.add_column(name, justify="left" if name == "token" else "right")
+    for f in frames[:FRAME_ROWS_SHOWN]:
+        table.add_row(f["token"], _fmt(f["iou"]), _fmt(f["miou"]), _fmt(f["n_occupied_built"]),
+                      _fmt(f["n_occupied_truth"]))
+    return table
+
+
 def eval_cmd(
     built: str = typer.Argument(..., help="Built dataset root."),
     truth: str = typer.Argument(..., help="Truth dataset root (frames matched by token)."),
     mask: str = typer.Option("mask_lidar", "--mask", help="Truth member restricting the voxels: mask_lidar, "
                              "mask_camera or none."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the full result (per-frame table) here."),
+    picture: Optional[Path] = typer.Option(None, "--picture", help="PNG of one matched frame, top-down: built | "
+                                           "truth | difference (e.g. an imported release against our build)."),
+    token: Optional[str] = typer.Option(None, "--token", help="lidar_pc token of the --picture frame (default: "
+                                        "the first matched frame)."),
 ) -> None:
-    """IoU / per-class IoU / mIoU of a built dataset against a truth dataset."""
+    """IoU / per-class IoU / mIoU of a built dataset against a truth dataset (frames matched by token)."""
     from nuplan_occ.evaluate import evaluate
 
     result = evaluate(built, truth, mask=mask, json_path=json_out)
     console.print(eval_table(result))
+    console.print(frames_table(result))
+    if picture is not None:
+        from nuplan_occ.release.compare import render_frame_pair
+
+        token = token or result["frames"][0]["token"]
+        render_frame_pair(built, truth, token, picture)
+        console.print(f"picture of frame {token} written to {picture}")
     if result["frames_without_mask"]:
         err_console.print(f"{result['frames_without_mask']} truth frames have no {mask}: scored everywhere")
     if json_out is not None:

@@ -3,7 +3,8 @@
 `ds[i]` is the i-th frame with status "ok" in manifest order (log_id, timestamp_us). Arrays are
 indexed [x, y, z] in the ego frame (nuPlan rear axle at `timestamp_us`, see `nuplan_occ.grid`);
 `ego_to_global` is T_global_from_ego (4, 4) float64; `flow` is m/s in the ego frame. Only the members
-a frame has are returned; asking for another raises `MissingMemberError`.
+a frame has are returned; asking for another raises `MissingMemberError`. Identity fields the source
+did not give (an imported release without its logs) are None, and `ego_to_global` is all NaN.
 """
 
 from __future__ import annotations
@@ -26,6 +27,14 @@ from nuplan_occ.storage.records import STATUS_OK
 def _ints(table: pa.Table, name: str) -> np.ndarray:
     """An integer column as int64 numpy, nulls as -1."""
     return table[name].cast(pa.int64()).fill_null(-1).to_numpy()
+
+
+def _poses(table: pa.Table) -> np.ndarray:
+    """The ego_to_global column as (N, 4, 4) float64; null poses (unknown) are all NaN."""
+    column = table["ego_to_global"].combine_chunks()
+    poses = column.values.to_numpy(zero_copy_only=False).astype(np.float64).reshape(-1, 4, 4)
+    poses[column.is_null().to_numpy(zero_copy_only=False)] = np.nan
+    return poses
 
 
 class OccDataset:
@@ -51,9 +60,9 @@ class OccDataset:
             m: np.stack([_ints(self.manifest, f"{m}_{f}") for f in MEMBER_FIELDS], axis=1)
             for m in MEMBERS
         }
-        self._poses = self.manifest["ego_to_global"].combine_chunks().values.to_numpy().reshape(-1, 4, 4)
-        self._timestamps = _ints(self.manifest, "timestamp_us")
-        self._frame_index = _ints(self.manifest, "frame_index")
+        self._poses = _poses(self.manifest)
+        self._ints = {n: (self.manifest[n].is_valid().to_numpy(zero_copy_only=False), _ints(self.manifest, n))
+                      for n in ("timestamp_us", "frame_index")}
         self._strings = {n: self.manifest[n].combine_chunks() for n in ("key", "token", "log", "scene_token")}
         self._token_index: dict[str, int] | None = None
         self._reader = ShardReader(root)
@@ -93,8 +102,7 @@ class OccDataset:
             "token": self._strings["token"][i].as_py(),
             "log_name": self._strings["log"][i].as_py(),
             "scene_token": self._strings["scene_token"][i].as_py(),
-            "timestamp_us": int(self._timestamps[i]),
-            "frame_index": int(self._frame_index[i]),
+            **{n: int(values[i]) if known[i] else None for n, (known, values) in self._ints.items()},
         }
 
     def get_many(self, indices: Sequence[int], keys: Iterable[str] | None = None) -> list[dict]:

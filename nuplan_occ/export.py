@@ -5,7 +5,9 @@ forward, y left, z up), 400 x 400 x 32 voxels of 0.25 m over x, y in [-50, 50) m
 nuScenes arrays are also [x, y, z] in the ego frame, but 200 x 200 x 16 at 0.4 m over [-40, 40]^2 x
 [-1, 5.4] m; no resampling is done, so configs must state our shape, range and voxel size.
 Besides the frame files, `<dest>/export.json` records the format, grid, label remap and, per frame,
-log, scene, token, timestamp and T_global_from_ego (for building a consumer's info file).
+log, scene, token, timestamp and T_global_from_ego (for building a consumer's info file; null where the
+dataset does not know them, e.g. an imported release without its logs, whose occ3d folder is
+`unknown_log`).
 
 format "occ3d": `<dest>/<log>/<token>/labels.npz` (np.savez_compressed) with
     semantics    uint8 [X, Y, Z], Occ3D-nuScenes id layout (classes 0-16, free = 17), remapped by OCC3D_REMAP;
@@ -59,6 +61,8 @@ OCC3D_FREE = 17
 OCC3D_REMAP = {0: 17, 1: 15, 2: 4, 3: 2, 4: 7, 5: 8, 6: 1, 7: 5, 8: 0, 12: 11, 13: 13, 14: 12}
 """Our semantic id -> Occ3D-nuScenes id (see module docstring)."""
 MASK_MEMBERS = ("mask_lidar", "mask_camera")
+UNKNOWN_LOG = "unknown_log"
+"""occ3d folder of frames whose log is unknown (an imported release without its logs)."""
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
 
 
@@ -116,12 +120,17 @@ def _write_frame(frame: dict, dest: Path, fmt: str, shape: tuple[int, int, int])
         rel = f"{uniscene_folder(shape)}/{token}.npy"
         np.save(dest / rel, np.ascontiguousarray(frame["semantics"], dtype=np.uint8))
         return rel
-    rel = f"{_safe(frame['log_name'], 'log name')}/{token}/labels.npz"
+    rel = f"{_safe(frame['log_name'] or UNKNOWN_LOG, 'log name')}/{token}/labels.npz"
     (dest / rel).parent.mkdir(parents=True, exist_ok=True)
     arrays = {"semantics": to_occ3d(frame["semantics"], f"frame {token}")}
     arrays |= {m: frame[m].astype(np.uint8) for m in MASK_MEMBERS if m in frame}
     np.savez_compressed(dest / rel, **arrays)
     return rel
+
+
+def _pose_or_none(pose: np.ndarray) -> list | None:
+    """A pose as nested lists; None when unknown (NaN)."""
+    return pose.tolist() if np.all(np.isfinite(pose)) else None
 
 
 def _group_by_members(ds, indices: range, wanted: tuple[str, ...]) -> dict[tuple[str, ...], list[int]]:
@@ -156,7 +165,7 @@ def export_dataset(root: str, dest: str | Path, format: str) -> dict:  # noqa: A
                 frames.append({"file": _write_frame(frame, dest, format, ds.grid.shape), "token": frame["token"],
                                "log_name": frame["log_name"], "scene_token": frame["scene_token"],
                                "frame_index": frame["frame_index"], "timestamp_us": frame["timestamp_us"],
-                               "ego_to_global": frame["ego_to_global"].tolist()})
+                               "ego_to_global": _pose_or_none(frame["ego_to_global"])})
     if format == "occ3d":
         remap = remap_table()
     else:

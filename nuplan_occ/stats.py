@@ -1,6 +1,6 @@
 """Summary figures of a published dataset, computed from its manifest and dataset.json alone (no shard reads).
 
-- frames: ok / failed counts, failure reasons counted, logs and scenes;
+- frames: ok / failed counts, failure reasons counted, logs and scenes (unknown, null ones not counted);
 - classes: voxel totals per label id over the ok frames (the manifest's `class_hist`), with fractions
   of all voxels and of occupied voxels;
 - bytes: stored (compressed) bytes per frame of each member (`<member>_nbytes`), over the frames that
@@ -87,7 +87,8 @@ def dataset_stats(root: str) -> dict:
     return {
         "root": root,
         "frames": {"total": table.num_rows, "ok": ok.num_rows, "failed": failed.num_rows,
-                   "logs": len(pc.unique(table["log"])), "scenes": len(pc.unique(table["scene_token"]))},
+                   "logs": pc.count_distinct(table["log"]).as_py(),
+                   "scenes": pc.count_distinct(table["scene_token"]).as_py()},
         "failure_reasons": dict(Counter(failed["failure_reason"].to_pylist()).most_common()),
         "classes": _class_totals(ok, metadata["labels"]),
         "bytes": member_bytes,

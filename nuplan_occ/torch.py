@@ -7,6 +7,8 @@ Item of a clip of T frames (T = clip_len):
            ego frame expressed in the clip's first ego frame (poses[0] = identity);
     ego_to_global: float64 [T, 4, 4]; timestamp_us, frame_index: int64 [T];
     tokens: list of T lidar_pc tokens; scene_token, log_name: str.
+Unknown identity (an imported release without its logs): poses NaN, timestamp_us / frame_index -1,
+scene_token / log_name None; frames without a frame_index only form clips of length 1.
 Clips and subsets are chosen from manifest columns only (see `nuplan_occ.storage.clips`).
 Works with DataLoader workers: each worker reopens its shard handles after the fork.
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import torch
 
 from nuplan_occ.dataset import OccDataset
@@ -49,8 +52,9 @@ class OccupancyDataset(torch.utils.data.Dataset):
     ):
         self.ds = OccDataset(path)
         self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
-        scenes = self.ds.manifest["scene_token"].combine_chunks().dictionary_encode().indices.to_numpy()
-        frames = self.ds.manifest["frame_index"].to_numpy()
+        scenes = pc.fill_null(self.ds.manifest["scene_token"], "").combine_chunks().dictionary_encode().indices
+        scenes = scenes.to_numpy()
+        frames = self.ds.manifest["frame_index"].fill_null(-1).to_numpy()
         self._order = clips.clip_order(scenes, frames)
         starts = clips.clip_starts(scenes, frames, self._order, clip_len, stride)
         if subset is not None:
@@ -76,8 +80,8 @@ class OccupancyDataset(torch.utils.data.Dataset):
         item = {key: torch.from_numpy(np.stack([f[key] for f in frames])) for key in self.keys}
         item["poses"] = torch.from_numpy(np.einsum("ij,tjk->tik", first_from_global, ego_to_global))
         item["ego_to_global"] = torch.from_numpy(ego_to_global)
-        item["timestamp_us"] = torch.tensor([f["timestamp_us"] for f in frames], dtype=torch.int64)
-        item["frame_index"] = torch.tensor([f["frame_index"] for f in frames], dtype=torch.int64)
+        for name in ("timestamp_us", "frame_index"):
+            item[name] = torch.tensor([-1 if f[name] is None else f[name] for f in frames], dtype=torch.int64)
         item["tokens"] = [f["token"] for f in frames]
         item["scene_token"] = frames[0]["scene_token"]
         item["log_name"] = frames[0]["log_name"]

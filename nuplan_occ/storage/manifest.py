@@ -83,8 +83,9 @@ def rows_to_table(rows: list[dict], hist_len: int) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
 
 
-def _identity(table: pa.Table) -> pa.ChunkedArray:
-    return pc.binary_join_element_wise(table["log"], table["token"], "\x1f")
+def identity(table: pa.Table) -> pa.ChunkedArray:
+    """The (log, token) identity of each row as one string (an unknown, null log counts as "")."""
+    return pc.binary_join_element_wise(pc.fill_null(table["log"], ""), table["token"], "\x1f")
 
 
 def _ordered(table: pa.Table) -> pa.Table:
@@ -97,7 +98,7 @@ def _ordered(table: pa.Table) -> pa.Table:
 
 def merge(existing: pa.Table | None, new: pa.Table) -> pa.Table:
     """`existing` with the rows of `new` added; a new row replaces an existing one of equal (log, token)."""
-    new_ids = _identity(new)
+    new_ids = identity(new)
     if len(pc.unique(new_ids)) != len(new_ids):
         raise InvalidFrameError("commit: the rows repeat a (log, token) pair")
     if existing is None:
@@ -106,7 +107,7 @@ def merge(existing: pa.Table | None, new: pa.Table) -> pa.Table:
     try:
         # a table read back from Parquet names list children "element"; restore the writer's types
         existing = existing.cast(pa.schema(list(new.schema)[:n_base] + list(existing.schema)[n_base:]))
-        kept = existing.filter(pc.invert(pc.is_in(_identity(existing), value_set=new_ids.combine_chunks())))
+        kept = existing.filter(pc.invert(pc.is_in(identity(existing), value_set=new_ids.combine_chunks())))
         merged = pa.concat_tables([kept, new], promote_options="permissive")
     except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError, ValueError) as exc:
         raise DatasetFormatError(f"commit: new rows do not fit the published manifest's columns: {exc}") from exc

@@ -11,26 +11,28 @@ STATUS_OK = "ok"
 STATUS_FAILED = "failed"
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9_-]")
+_UNSAFE_TOKEN = re.compile(r"[^A-Za-z0-9_]")
 
 
 @dataclass
 class FrameRecord:
     """One output frame of a log.
 
-    `ego_to_global`: (4, 4) float64, T_global_from_ego (ego = rear axle at `timestamp_us`, global = the
+    Identity fields other than `token` may be None when the source does not say (an imported release
+    without its nuPlan logs): the manifest stores null, never a guess. `ego_to_global`: (4, 4) float64, T_global_from_ego (ego = rear axle at `timestamp_us`, global = the
     map's UTM frame). `arrays`: any of the members in `nuplan_occ.storage.codecs.MEMBERS`, indexed
     [x, y, z] in that ego frame (`flow` in m/s, ego frame). `columns`: extra scalar manifest columns.
     A failed frame (`status="failed"`) carries no arrays, only its `failure_reason`.
     """
 
-    log: str
-    log_id: int
-    scene_token: str
-    scene_name: str
-    frame_index: int
+    log: str | None
+    log_id: int | None
+    scene_token: str | None
+    scene_name: str | None
+    frame_index: int | None
     token: str
-    timestamp_us: int
-    ego_to_global: np.ndarray
+    timestamp_us: int | None
+    ego_to_global: np.ndarray | None
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     columns: dict[str, float | int | bool | str] = field(default_factory=dict)
     status: str = STATUS_OK
@@ -38,7 +40,9 @@ class FrameRecord:
 
     @property
     def key(self) -> str:
-        """The frame's WebDataset key, see `frame_key`."""
+        """The frame's WebDataset key: `frame_key`, or `token_key` when log or frame_index is unknown."""
+        if self.log is None or self.frame_index is None:
+            return token_key(self.token)
         return frame_key(self.log, self.frame_index)
 
 
@@ -49,3 +53,9 @@ def frame_key(log: str, frame_index: int) -> str:
     log names contain dots (`2021.05.12.22.00.38_veh-35_01008_01518`), so the key has none.
     """
     return f"{_UNSAFE.sub('_', log)}-{int(frame_index):06d}"
+
+
+def token_key(token: str) -> str:
+    """The key of a frame whose log or frame index is unknown: its token, characters outside
+    [A-Za-z0-9_] replaced by "_" (no "-", so it never looks like a `frame_key`)."""
+    return _UNSAFE_TOKEN.sub("_", token)

@@ -25,7 +25,7 @@ from nuplan_occ.storage import codecs
 from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import DatasetFormatError
 from nuplan_occ.storage.fsio import resolve
-from nuplan_occ.storage.manifest import SORT_KEYS, base_schema, read_manifest
+from nuplan_occ.storage.manifest import SORT_KEYS, base_schema, identity, read_manifest
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.writer import shard_path
 
@@ -64,7 +64,7 @@ def _column_problems(table: pa.Table, hist_len: int, where: str) -> list[str]:
 
 def _order_problems(table: pa.Table, where: str) -> list[str]:
     problems = []
-    ids = pc.binary_join_element_wise(table["log"], table["token"], "\x1f")
+    ids = identity(table)
     if len(pc.unique(ids)) != table.num_rows:
         problems.append(f"{where}: (log, token) pairs are not unique")
     order = pc.sort_indices(table, sort_keys=[(k, "ascending") for k in SORT_KEYS]).to_numpy()

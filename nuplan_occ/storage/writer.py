@@ -64,6 +64,10 @@ def _scalar(name: str, value: object, where: str) -> float | int | bool | str | 
     raise InvalidFrameError(f"{where}: column {name!r} has a {type(value).__name__}, expected a scalar")
 
 
+def _int_or_none(value: object) -> int | None:
+    return None if value is None else int(value)
+
+
 def _is_int(value: object) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
@@ -131,13 +135,13 @@ class DatasetWriter:
         row: dict = {
             "key": record.key,
             "log": record.log,
-            "log_id": int(record.log_id),
+            "log_id": _int_or_none(record.log_id),
             "scene_token": record.scene_token,
             "scene_name": record.scene_name,
-            "frame_index": int(record.frame_index),
+            "frame_index": _int_or_none(record.frame_index),
             "token": record.token,
-            "timestamp_us": int(record.timestamp_us),
-            "ego_to_global": pose.reshape(-1).tolist(),
+            "timestamp_us": _int_or_none(record.timestamp_us),
+            "ego_to_global": None if pose is None else pose.reshape(-1).tolist(),
             "shard": shard_key,
             "status": record.status,
             "failure_reason": record.failure_reason,
@@ -163,21 +167,25 @@ class DatasetWriter:
         row.update(columns)
         return row, blobs
 
-    def _check_identity(self, record: FrameRecord, where: str) -> np.ndarray:
-        """Check the record's identity fields and arrays; return its pose as (4, 4) float64."""
-        for name in ("log", "scene_token", "scene_name", "token", "failure_reason", "status"):
+    def _check_identity(self, record: FrameRecord, where: str) -> np.ndarray | None:
+        """Check the record's identity fields and arrays; return its pose as (4, 4) float64 (None: unknown)."""
+        for name in ("token", "failure_reason", "status"):
             if not isinstance(getattr(record, name), str):
                 raise InvalidFrameError(f"{where}: {name} must be a str")
-        if not record.log or not record.token:
-            raise InvalidFrameError(f"{where}: log and token must not be empty")
+        for name in ("log", "scene_token", "scene_name"):
+            if not isinstance(getattr(record, name), (str, type(None))):
+                raise InvalidFrameError(f"{where}: {name} must be a str or None (unknown)")
+        if record.log == "" or not record.token:
+            raise InvalidFrameError(f"{where}: log (None when unknown) and token must not be empty")
         for name in ("log_id", "frame_index", "timestamp_us"):
-            if not _is_int(getattr(record, name)):
-                raise InvalidFrameError(f"{where}: {name} must be an int")
-        if record.log_id < 0 or record.frame_index < 0:
+            value = getattr(record, name)
+            if value is not None and not _is_int(value):
+                raise InvalidFrameError(f"{where}: {name} must be an int or None (unknown)")
+        if any(v is not None and v < 0 for v in (record.log_id, record.frame_index)):
             raise InvalidFrameError(f"{where}: log_id and frame_index must be >= 0")
-        pose = np.asarray(record.ego_to_global, dtype=np.float64)
-        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-            raise InvalidFrameError(f"{where}: ego_to_global must be a finite (4, 4) matrix")
+        pose = None if record.ego_to_global is None else np.asarray(record.ego_to_global, dtype=np.float64)
+        if pose is not None and (pose.shape != (4, 4) or not np.all(np.isfinite(pose))):
+            raise InvalidFrameError(f"{where}: ego_to_global must be a finite (4, 4) matrix or None (unknown)")
         for name, array in record.arrays.items():
             if name not in MEMBERS:
                 raise InvalidFrameError(f"{where}: unknown member {name!r} (known: {list(MEMBERS)})")
