@@ -63,7 +63,7 @@ def render_comparison(first: np.ndarray, second: np.ndarray, labels: LabelMap, p
         ax.set_title(name)
         ax.set_xticks([])
         ax.set_yticks([])
-    present = sorted(set(np.unique(first)) | set(np.unique(second)) - {0})
+    present = sorted((set(np.unique(first)) | set(np.unique(second))) - {0})
     class_patches = [mpatches.Patch(color=np.array(labels.colors[i]) / 255, label=labels.names.get(i, str(i)))
                      for i in present if i in labels.colors]
     diff_names = {"only_first": f"only {names[0]}", "only_second": f"only {names[1]}",

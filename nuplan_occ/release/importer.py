@@ -175,7 +175,8 @@ class _Importer:
 
     def run_folder(self, folder: ReleaseFolder, on_frame: Callable[[str], None]) -> None:
         self.folder, self.part = folder, 0
-        for path in folder.files:
+        files = self.logs.order_by_log(folder.files) if self.logs and folder.kind == "dense" else folder.files
+        for path in files:
             if path.stem in self.done:
                 self.summary.skipped += 1
                 on_frame("skipped")

@@ -9,6 +9,7 @@ timestamp), not our refined poses.
 from __future__ import annotations
 
 import sqlite3
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import quote
@@ -58,6 +59,7 @@ class LogIndex:
         self.root = Path(logs_root)
         self.dbs = resolve_logs(self.root, split=None)
         self._scene_db: dict[str, Path] | None = None
+        self._token_db: dict[str, Path] = {}
         self._open: tuple[NuplanLog, dict, dict] | None = None
 
     def close(self) -> None:
@@ -73,8 +75,26 @@ class LogIndex:
         return self._scene_db.get(scene_token)
 
     def _db_of_token(self, token: bytes) -> Path | None:
+        if token.hex() in self._token_db:
+            return self._token_db[token.hex()]
         return next((db for db in self.dbs if _query(db, "SELECT 1 FROM lidar_pc WHERE token = ? LIMIT 1", (token,))),
                     None)
+
+    def order_by_log(self, paths: Sequence[Path]) -> list[Path]:
+        """`paths` (named `<lidar_pc token>.<ext>`) reordered so each log's frames are consecutive, in
+        DB order and time order within a log; tokens no DB has come last, by name. Used for the dense
+        layout, whose one folder mixes every log (one log is open at a time)."""
+        by_token = {p.stem: p for p in paths}
+        ordered = []
+        for db in self.dbs:
+            start = len(ordered)
+            for (token,) in _query(db, "SELECT token FROM lidar_pc ORDER BY timestamp"):
+                path = by_token.pop(token.hex(), None) if isinstance(token, bytes) else None
+                if path is not None:
+                    ordered.append(path)
+            if len(ordered) > start:
+                self._token_db[ordered[start].stem] = db  # the group's first lookup needs no DB search
+        return ordered + sorted(by_token.values())
 
     def _load(self, db: Path) -> None:
         self.close()
