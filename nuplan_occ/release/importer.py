@@ -30,6 +30,7 @@ import numpy as np
 import pyarrow.compute as pc
 
 from nuplan_occ.geometry import invert_transform
+from nuplan_occ.io.errors import NuplanFormatError
 from nuplan_occ.release.errors import ReleaseFrameError, ReleaseImportError
 from nuplan_occ.release.files import FLAT_ORDERS, ReleaseFolder, densify, find_folders, read_frame
 from nuplan_occ.release.label_maps import DEFAULT_BY_LAYOUT, ReleaseLabelMap, load_label_map
@@ -127,7 +128,10 @@ class _Importer:
         self.writer = DatasetWriter(out, {"params": {"import_release": asdict(options)}, "release": self.conventions},
                                     grid=self.out_grid)
         self.out = out
-        self.logs = LogIndex(options.logs_root) if options.logs_root else None
+        try:
+            self.logs = LogIndex(options.logs_root) if options.logs_root else None
+        except NuplanFormatError as exc:
+            raise ReleaseImportError(f"--logs-root: {exc}") from None
         self.summary = ImportSummary()
         self.records: list[FrameRecord] = []
         self.pending: list[dict] = []

@@ -17,6 +17,7 @@ from urllib.parse import quote
 import numpy as np
 
 from nuplan_occ.io.data_root import resolve_logs, sensor_root_for
+from nuplan_occ.io.errors import NuplanFormatError
 from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.pipeline.frame_columns import agent_speed_columns
 from nuplan_occ.pipeline.scene import log_id_of
@@ -53,7 +54,8 @@ def _query(db: Path, sql: str, params: tuple = ()) -> list:
 
 
 class LogIndex:
-    """Looks up lidar_pc tokens in the log DBs under a nuPlan data root (every `*.db` below it)."""
+    """Looks up lidar_pc tokens in the log DBs under a nuPlan data root (every `*.db` below it; a DB that
+    cannot be read is left out, so its frames keep null identity). MissingLogError if there is none."""
 
     def __init__(self, logs_root: str | Path):
         self.root = Path(logs_root)
@@ -96,10 +98,16 @@ class LogIndex:
                 self._token_db[ordered[start].stem] = db  # the group's first lookup needs no DB search
         return ordered + sorted(by_token.values())
 
-    def _load(self, db: Path) -> None:
+    def _load(self, db: Path) -> bool:
+        """Open `db` as the current log; False (and the DB left out from then on) if it cannot be read."""
         self.close()
-        log = NuplanLog(db, sensor_root_for(db, self.root))
+        try:
+            log = NuplanLog(db, sensor_root_for(db, self.root))
+        except NuplanFormatError:
+            self.dbs = [d for d in self.dbs if d != db]
+            return False
         self._open = (log, {f.token: f for f in log.frames}, {s.token: s.name for s in log.scenes})
+        return True
 
     def lookup(self, token: str, folder: str) -> FrameMeta | None:
         """The logs' metadata of lidar_pc `token` (release folder name `folder`), None if no DB has it."""
@@ -109,10 +117,7 @@ class LogIndex:
             except ValueError:
                 return None
             db = self._db_of_scene(folder) or self._db_of_token(key)
-            if db is None:
-                return None
-            self._load(db)
-            if token not in self._open[1]:
+            if db is None or not self._load(db) or token not in self._open[1]:
                 return None
         log, frames, scene_names = self._open
         frame = frames[token]
@@ -123,4 +128,12 @@ class LogIndex:
         return FrameMeta(log=name, log_id=log_id_of(name), scene_token=frame.scene_token or None,
                          scene_name=scene_names.get(frame.scene_token), frame_index=frame.index, timestamp_us=t,
                          ego_to_global=log.frame_pose(frame), T_ego_from_lidar=log.lidar.T_ego_from_lidar,
-                         columns={"ego_speed": ego_speed, **agent_speed_columns(log.boxes(frame))})
+                         columns={"ego_speed": ego_speed, **self._agent_columns(log, frame)})
+
+    @staticmethod
+    def _agent_columns(log: NuplanLog, frame) -> dict:
+        """max_agent_speed and n_moving_agents of the frame's boxes; none (null) if its boxes are unreadable."""
+        try:
+            return agent_speed_columns(log.boxes(frame))
+        except NuplanFormatError:
+            return {}

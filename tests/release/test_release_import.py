@@ -101,6 +101,18 @@ def test_label_ids_outside_the_map_stop_with_one_line_naming_the_file(truth, tmp
     assert set(read_manifest(str(out))["token"].to_pylist()) == set(truth)
 
 
+def test_bad_options_stop_with_one_line(truth, tmp_path):
+    src = tmp_path / "release"
+    write_dense(src, truth)
+    (tmp_path / "no_logs").mkdir()
+    for args, message in ((["--logs-root", tmp_path / "no_logs"], "no *.db log files found"),
+                          (["--labels", "nope"], "neither a label map name"),
+                          (["--layout", "sparse4"], "no dense_voxels_with_semantic/")):
+        result = cli("import-release", src, tmp_path / "out", *args)
+        assert result.exit_code == 1 and message in result.output, result.output
+    assert not (tmp_path / "out" / "manifest.parquet").exists()
+
+
 def test_label_map_file_flat_order_and_kept_lidar_frame(truth, tmp_path):
     src = tmp_path / "release"
     target = src / "dense_voxels_with_semantic" / FOLDER
