@@ -30,10 +30,12 @@ class WriteParams:
 
 def frame_columns(scene, position: int, registration, speeds, outliers: int, map_status: str,
                   alignment: MapAlignment | None) -> dict:
-    """Filter columns and QA figures of one frame (qa_map_*: the scene's map alignment, NaN without)."""
+    """output_index (see `nuplan_occ.storage.clips`), filter columns and QA figures of one frame (qa_map_*: the
+    scene's map alignment, NaN without)."""
     sweep = scene.sweeps[position]
     correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
     columns = {
+        "output_index": int(sweep.output_index),
         "ego_speed": float(speeds[position]),
         **agent_speed_columns(sweep.boxes_global),
         "qa_pose_correction_m": float(np.linalg.norm(correction[:3, 3])),
@@ -91,4 +93,5 @@ def run(inputs: dict, params: WriteParams) -> dict:
 
 STAGE = Stage("write", inputs=("scene", "registration", "grids", "final_semantics", "masks", "free_cleared",
                                 "outliers_removed", "map_status", "map_alignment"),
-              outputs=("rows",), params_type=WriteParams, run=run, code=("nuplan_occ.storage",), doc=__doc__ or "")
+              outputs=("rows",), params_type=WriteParams, run=run,
+              code=("nuplan_occ.storage",), doc=__doc__ or "")
