@@ -1,10 +1,10 @@
 """VAE / DiT benchmarks on a dataset (by default a synthetic one), and the loss-curve PNG.
 
 `run_vae_bench(data_root, steps, config, clip_len=T)`: trains the config's VAE on clips of T frames that
-lie in the first 3/4 of the frames and reports reconstruction IoU / mIoU (OccWorld definitions, see
-`occgen.metrics`) of the argmax decoding of the encoder mean on the held-out last 1/4 (each frame
-decoded within a clip of T held-out frames, so different T score the same frames), the loss curve and
-the compression ratio.
+lie outside the held-out scenes (the last whole scenes within a quarter of the frames) and reports
+reconstruction IoU / mIoU (OccWorld definitions, see `occgen.metrics`) of the argmax decoding of the
+encoder mean on the held-out scenes (each frame decoded within a clip of T of their frames, so different
+T score the same frames), the loss curve and the compression ratio.
 """
 
 from __future__ import annotations
@@ -43,27 +43,33 @@ def make_synthetic_dataset(root: str, scenes: int = 4, frames: int = 8, grid: Gr
 
 
 def held_out_split(data_root: str, dataset: OccupancyDataset) -> tuple[list[int], list[tuple[int, list[int]]], int]:
-    """Train on the first 3/4 of the frames, evaluate on the last 1/4 (at least one), whatever the clip length.
+    """Hold out the last whole scenes (clip order: scene, output_index) that fit in a quarter of the frames
+    (at least one scene; at least one stays for training), whatever the clip length.
 
-    Frames are taken in clip order (scene, output_index). Returns (training clips: every clip of `dataset`
-    without a held-out frame; evaluation plan: (clip, positions in the clip) pairs of clips wholly inside
-    the held-out frames that score each held-out frame once; number of held-out frames). A held-out frame
-    in a run shorter than the clip length is in no plan entry."""
+    Returns (training clips: the clips of `dataset` in the other scenes; evaluation plan: (clip, positions in
+    the clip) pairs of held-out clips that score each held-out frame once; number of held-out frames). A
+    held-out frame in a run shorter than the clip length is in no plan entry."""
     frames = OccupancyDataset(data_root, clip_len=1)
     rows = [int(frames.frame_indices(i)[0]) for i in range(len(frames))]
-    if len(rows) < 2:
-        raise ValueError(f"{data_root}: need at least 2 frames for a train / held-out split, got {len(rows)}")
-    held = set(rows[len(rows) - max(len(rows) // 4, 1):])
+    scene_of = frames.ds.manifest["scene_token"].to_pylist()
+    scenes = list(dict.fromkeys(scene_of[r] for r in rows))
+    if len(scenes) < 2:
+        raise ValueError(f"{data_root}: need at least 2 scenes for a train / held-out split, got {len(scenes)}")
+    size = {s: sum(scene_of[r] == s for r in rows) for s in scenes}
+    held_scenes = {scenes[-1]}
+    for scene in reversed(scenes[1:-1]):
+        if sum(size[s] for s in held_scenes) + size[scene] > len(rows) / 4:
+            break
+        held_scenes.add(scene)
+    held = {r for r in rows if scene_of[r] in held_scenes}
     train, plan, scored = [], [], set()
     for i in range(len(dataset)):
         clip = [int(r) for r in dataset.frame_indices(i)]
         if not held.intersection(clip):
             train.append(i)
-        elif held.issuperset(clip) and not scored.issuperset(clip):
+        elif not scored.issuperset(clip):
             plan.append((i, [t for t, r in enumerate(clip) if r not in scored]))
             scored.update(clip)
-    if not train:
-        raise ValueError(f"{data_root}: no clip of {dataset.clip_len} frames lies in the training frames")
     return train, plan, len(held)
 
 
