@@ -24,9 +24,9 @@ from nuplan_occ.storage.errors import DatasetFormatError
 
 
 def _speeds(ds: OccDataset, name: str) -> np.ndarray:
-    if name not in ds.manifest.column_names:
+    if not ds.has_column(name):
         raise DatasetFormatError(f"{ds.root}: manifest has no {name!r} column, needed for subsets")
-    return ds.manifest[name].cast(pa.float64()).fill_null(np.nan).to_numpy()
+    return ds.column(name).cast(pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
 
 
 class OccupancyDataset(torch.utils.data.Dataset):
@@ -49,8 +49,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
     ):
         self.ds = OccDataset(path)
         self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
-        scenes = self.ds.manifest["scene_token"].combine_chunks().dictionary_encode().indices.to_numpy()
-        frames = self.ds.manifest["frame_index"].to_numpy()
+        scenes, frames = self.ds.scene_codes, self.ds.frame_index
         self._order = clips.clip_order(scenes, frames)
         starts = clips.clip_starts(scenes, frames, self._order, clip_len, stride)
         if subset is not None:

@@ -8,7 +8,7 @@ from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import (
     ChecksumError, DatasetFormatError, InvalidFrameError, MissingMemberError, StorageError,
 )
-from nuplan_occ.storage.manifest import read_manifest
+from nuplan_occ.storage.manifest_reader import read_manifest
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.reader import ShardReader, read_member
 from nuplan_occ.storage.records import FrameRecord, frame_key
