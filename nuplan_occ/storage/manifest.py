@@ -103,8 +103,8 @@ def check_unique(table: pa.Table) -> None:
         raise InvalidFrameError("commit: the rows repeat a (log, token) pair")
 
 
-def to_parquet_bytes(table: pa.Table) -> bytes:
-    """Parquet file bytes (zstd, 128 k-row row groups); equal tables give equal bytes."""
+def to_parquet_bytes(table: pa.Table, row_group_size: int = ROW_GROUP_SIZE) -> bytes:
+    """Parquet file bytes (zstd, `row_group_size` rows per row group); equal tables give equal bytes."""
     sink = io.BytesIO()
-    pq.write_table(table, sink, compression="zstd", row_group_size=ROW_GROUP_SIZE)
+    pq.write_table(table, sink, compression="zstd", row_group_size=row_group_size)
     return sink.getvalue()

@@ -42,6 +42,7 @@ class ManifestIndex:
 
     `rows`: position in the files' row space of every visible row, in manifest order (int64).
     `schema`: the union of the files' columns (a column a file lacks reads as null there).
+    `paths`, `file_row_counts`: the manifest files read and their row counts (superseded rows included).
     """
 
     def __init__(self, root: str):
@@ -75,6 +76,7 @@ class ManifestIndex:
         self._fragments = fragments
         self._dataset = pads.FileSystemDataset(fragments, self.schema, fmt, filesystem)
         counts = np.array([f.metadata.num_rows for f in fragments], dtype=np.int64)
+        self.file_row_counts = counts
         self._file_start = np.concatenate([[0], np.cumsum(counts)])
         self._group_starts = [np.concatenate([[0], np.cumsum([g.num_rows for g in f.row_groups])]) for f in fragments]
         index = self._read(["scene_token", COMMIT_COLUMN, *SORT_KEYS[:3]])
