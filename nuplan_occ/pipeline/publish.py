@@ -18,6 +18,7 @@ from __future__ import annotations
 import shutil
 from collections import Counter
 from dataclasses import asdict, is_dataclass
+from pathlib import Path
 from typing import Any
 
 from nuplan_occ import __version__
@@ -54,14 +55,19 @@ def failed_scene_rows(task: SceneTask, reason: str) -> list[dict]:
 
 
 def publish_scene(task: SceneTask, rows: list[dict], keep_work: str) -> None:
-    """Commit the scene's rows (one fragment; nothing if already published) and apply the work policy."""
+    """Commit the scene's rows (one fragment; nothing if already published), then apply the work policy."""
+    scene_writer(task).commit(rows)
+    trim_work(task.work_dir, keep_work)
+
+
+def trim_work(work_dir: Path, keep_work: str) -> None:
+    """Apply a work-folder policy to one scene's stage cache folder (see module docstring)."""
     if keep_work not in KEEP_WORK:
         raise ValueError(f"keep_work {keep_work!r} is not one of {KEEP_WORK}")
-    scene_writer(task).commit(rows)
     if keep_work == "none":
-        shutil.rmtree(task.work_dir, ignore_errors=True)
-    elif keep_work == "default" and task.work_dir.is_dir():
-        for stage_dir in task.work_dir.iterdir():
+        shutil.rmtree(work_dir, ignore_errors=True)
+    elif keep_work == "default" and work_dir.is_dir():
+        for stage_dir in work_dir.iterdir():
             if stage_dir.is_dir() and stage_dir.name not in DEFAULT_KEPT_STAGES:
                 shutil.rmtree(stage_dir, ignore_errors=True)
 
