@@ -29,15 +29,16 @@ def _ints(table: pa.Table, name: str) -> np.ndarray:
     return table[name].cast(pa.int64()).fill_null(-1).to_numpy()
 
 
-INDEX_COLUMNS = ("status", "token", "scene_token", "frame_index")
+INDEX_COLUMNS = ("status", "token", "frame_index")
 FRAME_COLUMNS = ("key", "shard", "token", "log", "scene_token", "timestamp_us", "frame_index", "ego_to_global")
 
 
 class OccDataset:
     """Random access to the ok frames of a dataset root (local path or fsspec URL).
 
-    Opening reads only the manifest's index columns (status, token, scene, frame index); a frame's
-    other columns are read when it is asked for (`manifest_reader.ManifestIndex`). Attributes:
+    Opening reads only the manifest's index columns (status, token, scene, frame index, and what
+    resolving commits needs: `manifest_reader.ManifestIndex`); a frame's
+    other columns are read when it is asked for. Attributes:
     `metadata` (dataset.json), `grid` (GridSpec), `labels` (id -> {"name", "color"}), `scene_codes`
     (int per frame, equal within a scene), `frame_index` (int64 per frame). `column(name)` reads one
     manifest column of every ok frame; `manifest` is the whole table of ok frames (read on first use).
@@ -53,11 +54,11 @@ class OccDataset:
         }
         self._index = ManifestIndex(root)
         index = self._index.table(list(INDEX_COLUMNS))
-        ok = pc.equal(index["status"], STATUS_OK).combine_chunks()
-        self._positions = np.flatnonzero(ok.fill_null(False).to_numpy(zero_copy_only=False))
+        ok = pc.equal(index["status"], STATUS_OK).combine_chunks().fill_null(False).to_numpy(zero_copy_only=False)
+        self._positions = np.flatnonzero(ok)
         index = index.filter(ok)
         self._tokens = index["token"].combine_chunks()
-        self.scene_codes = pc.dictionary_encode(index["scene_token"].combine_chunks()).indices.to_numpy()
+        self.scene_codes = self._index.scene_codes[self._positions]
         self.frame_index = _ints(index, "frame_index")
         self._manifest: pa.Table | None = None
         self._reader = ShardReader(root)

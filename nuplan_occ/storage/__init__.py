@@ -1,4 +1,5 @@
-"""On-disk dataset format: tar shards of per-frame zstd members + a Parquet manifest (the commit record).
+"""On-disk dataset format: tar shards of per-frame zstd members + a Parquet manifest (the commit record),
+published as one immutable fragment per scene and commit (`fragments.py`) and folded by `compact`.
 
 Write with `DatasetWriter(root, metadata).write_shard(key, records)` then `.commit(rows)`; read with
 `nuplan_occ.dataset.open_dataset(root)`, or low level with `read_manifest` / `read_member`.

@@ -40,7 +40,8 @@ def _column_order(schema: pa.Schema) -> pa.Schema:
 class ManifestIndex:
     """The visible manifest rows of a dataset root, in manifest order; see the module docstring.
 
-    `rows`: position in the files' row space of every visible row, in manifest order (int64).
+    `rows`: position in the files' row space of every visible row, in manifest order (int64);
+    `scene_codes`: an int per visible row, equal within a scene_token.
     `schema`: the union of the files' columns (a column a file lacks reads as null there).
     `paths`, `file_row_counts`: the manifest files read and their row counts (superseded rows included).
     """
@@ -84,6 +85,8 @@ class ManifestIndex:
         scenes = pc.dictionary_encode(index["scene_token"].combine_chunks()).indices.to_numpy()
         keep = np.flatnonzero(visible_rows(scenes, commit_ranks(index[COMMIT_COLUMN]), file_of_row))
         self.rows = keep[self._manifest_order(index, keep)]
+        self.scene_codes = scenes[self.rows]
+        self._in_file_order = len(self.rows) == self._file_start[-1] and bool(np.all(np.diff(self.rows) == 1))
 
     def _read(self, columns: list[str]) -> pa.Table:
         try:
@@ -121,6 +124,8 @@ class ManifestIndex:
         missing = sorted(set(columns) - set(self.schema.names))
         if missing:
             raise DatasetFormatError(f"{self.root}: manifest has no column(s) {missing}")
+        if positions is None and self._in_file_order:
+            return self._read(columns)
         rows = self.rows if positions is None else self.rows[np.asarray(positions, dtype=np.int64)]
         if positions is None or len(rows) > len(self.rows) // 4:
             return self._read(columns).take(pa.array(rows))
