@@ -16,6 +16,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.dataset as pads
 import pyarrow.fs as pafs
+import pyarrow.parquet as pq
 
 from nuplan_occ.storage.errors import DatasetFormatError
 from nuplan_occ.storage.fragments import COMMIT_COLUMN, commit_ranks, manifest_files, visible_rows
@@ -65,23 +66,25 @@ class ManifestIndex:
             raise DatasetFormatError(f"{self.root}: no manifest (nothing committed?)")
         fmt = pads.ParquetFileFormat()
         filesystem = _arrow_filesystem(self._fs)
-        fragments = [_parquet_fragment(fmt, p, filesystem) for p in paths]
+        footers = [_footer(p, filesystem) for p in paths]  # kept as counts only: 19 k footers are ~1 GB
+        schemas = {str(schema): schema for schema, _ in footers}
         try:
-            schema = pa.unify_schemas([f.physical_schema for f in fragments], promote_options="permissive")
+            schema = pa.unify_schemas(list(schemas.values()), promote_options="permissive")
         except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
             raise DatasetFormatError(f"{self.root}: manifest files have clashing column types ({exc})") from exc
         if COMMIT_COLUMN not in schema.names:
             schema = schema.append(pa.field(COMMIT_COLUMN, pa.string()))
         self.paths = paths
         self.schema = _column_order(schema.remove_metadata())
-        self._fragments = fragments
-        self._dataset = pads.FileSystemDataset(fragments, self.schema, fmt, filesystem)
-        counts = np.array([f.metadata.num_rows for f in fragments], dtype=np.int64)
+        self._format, self._filesystem = fmt, filesystem
+        self._dataset = pads.FileSystemDataset([fmt.make_fragment(p, filesystem) for p in paths], self.schema, fmt,
+                                               filesystem)
+        counts = np.array([int(groups.sum()) for _, groups in footers], dtype=np.int64)
         self.file_row_counts = counts
         self._file_start = np.concatenate([[0], np.cumsum(counts)])
-        self._group_starts = [np.concatenate([[0], np.cumsum([g.num_rows for g in f.row_groups])]) for f in fragments]
+        self._group_starts = [np.concatenate([[0], np.cumsum(groups)]) for _, groups in footers]
         index = self._read(["scene_token", COMMIT_COLUMN, *SORT_KEYS[:3]])
-        file_of_row = np.repeat(np.arange(len(fragments)), counts)
+        file_of_row = np.repeat(np.arange(len(paths)), counts)
         scenes = pc.dictionary_encode(index["scene_token"].combine_chunks()).indices.to_numpy()
         keep = np.flatnonzero(visible_rows(scenes, commit_ranks(index[COMMIT_COLUMN]), file_of_row))
         self.rows = keep[self._manifest_order(index, keep)]
@@ -154,8 +157,8 @@ class ManifestIndex:
         key = (f, g, tuple(columns))
         table = self._cache.pop(key, None)
         if table is None:
-            fragment = self._fragments[f].subset(row_group_ids=[g])
             try:
+                fragment = self._format.make_fragment(self.paths[f], self._filesystem, row_groups=[g])
                 table = fragment.to_table(schema=self.schema, columns=columns)
             except FileNotFoundError as exc:
                 raise DatasetFormatError(f"{self.paths[f]}: manifest file vanished (compacted since this "
@@ -166,16 +169,17 @@ class ManifestIndex:
         return table
 
 
-def _parquet_fragment(fmt: pads.ParquetFileFormat, path: str, filesystem: pafs.FileSystem) -> pads.Fragment:
-    """A manifest file's fragment with its footer read (FileNotFoundError passes through)."""
+def _footer(path: str, filesystem: pafs.FileSystem) -> tuple[pa.Schema, np.ndarray]:
+    """(Arrow schema, rows per row group) of a manifest file (FileNotFoundError passes through)."""
     try:
-        fragment = fmt.make_fragment(path, filesystem)
-        fragment.ensure_complete_metadata()
+        with filesystem.open_input_file(path) as handle:
+            meta = pq.ParquetFile(handle).metadata
+            return meta.schema.to_arrow_schema(), np.array([meta.row_group(i).num_rows
+                                                            for i in range(meta.num_row_groups)], dtype=np.int64)
     except FileNotFoundError:
         raise
     except (pa.ArrowInvalid, OSError) as exc:
         raise DatasetFormatError(f"{path}: not a readable Parquet file ({exc})") from exc
-    return fragment
 
 
 def _lex_less_equal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
