@@ -37,9 +37,9 @@ class OccDataset:
     """Random access to the ok frames of a dataset root (local path or fsspec URL).
 
     Opening reads only the manifest's index columns (status, token, scene, frame index, and what
-    resolving commits needs: `manifest_reader.ManifestIndex`); a frame's
-    other columns are read when it is asked for. Attributes:
-    `metadata` (dataset.json), `grid` (GridSpec), `labels` (id -> {"name", "color"}), `scene_codes`
+    resolving commits needs: `manifest_reader.ManifestIndex`); a frame's other columns are read when
+    it is asked for. Attributes: `metadata` (dataset.json), `grid` (GridSpec), `labels` (id ->
+    {"name", "color"}), `scene_codes`
     (int per frame, equal within a scene), `frame_index` (int64 per frame). `column(name)` reads one
     manifest column of every ok frame; `manifest` is the whole table of ok frames (read on first use).
     Keeps shard handles open per process.
