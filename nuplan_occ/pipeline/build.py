@@ -18,6 +18,7 @@ from typing import Any, Callable
 from nuplan_occ import __version__
 from nuplan_occ.io.data_root import maps_root_for, resolve_logs, sensor_root_for
 from nuplan_occ.io.reader import NuplanLog
+from nuplan_occ.pipeline.build_log import BuildLog
 from nuplan_occ.pipeline.executors import execute
 from nuplan_occ.pipeline.runner import SceneResult
 from nuplan_occ.pipeline.scene import SceneTask, log_id_of
@@ -120,15 +121,18 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str |
               on_event: Callable[[tuple[str, str, str]], None] | None = None,
               commit_every_s: float = 10.0) -> BuildSummary:
     """Build the dataset at `out` from the logs under `data_root`; returns the summary. work_root: where
-    stage outputs are cached (default: see `default_work_root`)."""
+    stage outputs are cached (default: see `default_work_root`); each run appends its scenes' stage times to
+    the build log there (`nuplan_occ.pipeline.build_log`)."""
     started = time.perf_counter()
     logs = resolve_logs(data_root, split=split, log_names=log_names, db_paths=db_paths)
     maps = maps_root_for(data_root, maps_root)
-    tasks = plan_tasks(logs, Path(data_root), maps, out, Path(work_root) if work_root else default_work_root(out), params)
+    work_root = Path(work_root) if work_root else default_work_root(out)
+    tasks = plan_tasks(logs, Path(data_root), maps, out, work_root, params)
     if on_plan:
         on_plan(tasks)
     writer = DatasetWriter(out, metadata={"params": params_metadata(params), "software": f"nuplan-occ {__version__}"})
     summary = BuildSummary()
+    build_log = BuildLog(work_root)
     pending_rows: list[dict] = []
     last_commit = time.monotonic()
     rate_step = max(1, round(params["load"].sweep_rate_hz / params["load"].rate_hz))
@@ -137,6 +141,7 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str |
         if result.error:
             result.rows = failed_scene_rows(by_scene[(result.log_name, result.scene_name)], result.error, rate_step)
         summary.add(result)
+        build_log.scene(by_scene[(result.log_name, result.scene_name)].scene_token, result)
         pending_rows.extend(result.rows)
         if time.monotonic() - last_commit >= commit_every_s:
             writer.commit(pending_rows)
