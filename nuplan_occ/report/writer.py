@@ -31,7 +31,7 @@ from nuplan_occ.pipeline.build_log import latest_versions, read_build_log, scene
 from nuplan_occ.report import html as h
 from nuplan_occ.report.flags import RULES, build_median, evaluate_rules
 from nuplan_occ.report.frames import load_frames
-from nuplan_occ.report.scene_page import GalleryItem, PageContext, is_current, read_gallery, render_scene
+from nuplan_occ.report.scene_page import GALLERY_PER_SCENE, GalleryItem, PageContext, is_current, read_gallery, render_scene
 from nuplan_occ.report.scenes import FIGURES, SceneSummary, summarize_scenes
 
 SCENES_PER_PAGE = 100
@@ -156,11 +156,15 @@ def _nav(prefix: str = "") -> list[tuple[str, str]]:
             ("gallery", f"{prefix}gallery-001.html")]
 
 
-def _write_paged(out: Path, stem: str, items: list, per_page: int, render: Callable[[list, int, int], str]) -> None:
-    """Pages `<stem>-NNN.html` of `items`, per_page a page (one page when empty); removes pages left over."""
+def _write_paged(out: Path, stem: str, title: str, intro: str, items: list, per_page: int,
+                 render: Callable[[list], str]) -> None:
+    """Pages `<stem>-NNN.html` of `items`, per_page a page (one page when empty), each the intro, a pager and
+    render(the page's items); removes pages left over from a larger report."""
     pages = max(1, -(-len(items) // per_page))
     for k in range(1, pages + 1):
-        (out / f"{stem}-{k:03d}.html").write_text(render(items[(k - 1) * per_page:k * per_page], k, pages))
+        pager = h.pager(k, pages, lambda j: f"{stem}-{j:03d}.html")
+        body = f"{intro}{pager}{render(items[(k - 1) * per_page:k * per_page])}{pager}"
+        (out / f"{stem}-{k:03d}.html").write_text(h.page(f"{title} (page {k} of {pages})", "", _nav(), body))
     for old in out.glob(f"{stem}-*.html"):
         if int(old.stem.rsplit("-", 1)[1]) > pages:
             old.unlink()
@@ -168,34 +172,29 @@ def _write_paged(out: Path, stem: str, items: list, per_page: int, render: Calla
 
 def _write_scene_tables(out: Path, scenes: list[SceneSummary], flags) -> None:
     rules = [r.name for r in RULES if r.name in flags.masks]
+    intro = (f"<p>{len(scenes)} scenes, most flagged first; click a header to sort this page. Rules: see the "
+             '<a href="index.html#rules">report</a>.</p>')
+    _write_paged(out, "scenes", "Scenes", intro, _ranked(scenes), SCENES_PER_PAGE,
+                 lambda chunk: h.table(SCENE_HEADERS, [_scene_row(s, rules) for s in chunk]))
 
-    def render(chunk: list[SceneSummary], k: int, pages: int) -> str:
-        pager = h.pager(k, pages, lambda j: f"scenes-{j:03d}.html")
-        body = (f"<p>{len(scenes)} scenes, most flagged first; click a header to sort this page. Rules: see the "
-                f'<a href="index.html#rules">report</a>.</p>{pager}'
-                f"{h.table(SCENE_HEADERS, [_scene_row(s, rules) for s in chunk])}{pager}")
-        return h.page(f"Scenes (page {k} of {pages})", "", _nav(), body)
 
-    _write_paged(out, "scenes", _ranked(scenes), SCENES_PER_PAGE, render)
+def _gallery_card(g: GalleryItem) -> str:
+    badges = "".join(f'<span class="badge {h.esc(r)}">{h.esc(r)}</span>' for r in g.rules)
+    link = f"scenes/{g.page_id}/index.html#f-{h.esc(g.token)}"
+    if g.image:
+        picture = f'<a href="{h.esc(link)}"><img src="{h.esc(g.image)}" alt="frame {g.frame_index}"></a>'
+    else:
+        note = f"failed, no grid: {h.esc(g.reason)}" if g.reason else "thumbnail limit of the scene reached: see its page"
+        picture = f'<div class="nogrid">{note}</div>'
+    return (f'<figure>{picture}<figcaption>{badges}<br><a href="{h.esc(link)}">{h.esc(g.scene)} frame '
+            f'{g.frame_index}</a><br><span class="mono">{h.esc(g.token)}</span></figcaption></figure>')
 
 
 def _write_gallery(out: Path, gallery: list[GalleryItem]) -> None:
-    def card(g: GalleryItem) -> str:
-        badges = "".join(f'<span class="badge {h.esc(r)}">{h.esc(r)}</span>' for r in g.rules)
-        link = f"scenes/{g.page_id}/index.html#f-{h.esc(g.token)}"
-        picture = (f'<a href="{h.esc(link)}"><img src="{h.esc(g.image)}" alt="frame {g.frame_index}"></a>' if g.image
-                   else f'<div class="nogrid">{"failed, no grid: " + h.esc(g.reason) if g.reason else "thumbnail limit of the scene reached: see its page"}</div>')
-        return (f'<figure>{picture}<figcaption>{badges}<br><a href="{h.esc(link)}">{h.esc(g.scene)} frame '
-                f'{g.frame_index}</a><br><span class="mono">{h.esc(g.token)}</span></figcaption></figure>')
-
-    def render(chunk: list[GalleryItem], k: int, pages: int) -> str:
-        pager = h.pager(k, pages, lambda j: f"gallery-{j:03d}.html")
-        body = (f"<p>{len(gallery)} flagged frames (failed frames have no grid; at most a few thumbnails per "
-                f"scene, the scene page lists all).</p>{pager}<div class=\"thumbs\">{''.join(card(g) for g in chunk)}"
-                f"</div>{pager}")
-        return h.page(f"Flagged frames (page {k} of {pages})", "", _nav(), body)
-
-    _write_paged(out, "gallery", gallery, GALLERY_PER_PAGE, render)
+    intro = (f"<p>{len(gallery)} flagged frames (failed frames have no grid; at most {GALLERY_PER_SCENE} thumbnails "
+             "a scene, its page lists every frame).</p>")
+    _write_paged(out, "gallery", "Flagged frames", intro, gallery, GALLERY_PER_PAGE,
+                 lambda chunk: f'<div class="thumbs">{"".join(_gallery_card(g) for g in chunk)}</div>')
 
 
 def _index_page(root: str, metadata: dict, frames, flags, scenes: list[SceneSummary], log: list[dict],
