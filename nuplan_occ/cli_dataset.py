@@ -194,8 +194,10 @@ def report_cmd(
         result = write_report(out, report_dir, every=every, work_root=work_dir,
                               progress=lambda done, total, scene: progress.update(
                                   task, completed=done, total=total, description=scene))
+    by_rule = ", ".join(f"{name} {count}" for name, count in result.rule_frames.items() if count) or "none"
     console.print(f"{result.scenes} scenes ({result.rendered} rendered, {result.reused} unchanged), "
-                  f"{result.flagged_frames} flagged frames; report written to {result.index}", highlight=False)
+                  f"{result.flagged_frames} flagged frames ({by_rule})", highlight=False)
+    console.print(f"report written to {result.index}", highlight=False, soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:

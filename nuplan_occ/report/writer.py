@@ -42,13 +42,15 @@ TOP_SCENES = 15
 
 @dataclass
 class ReportResult:
-    """index: the report's index.html; rendered / reused: scene pages drawn this run / kept from an earlier one."""
+    """index: the report's index.html; rendered / reused: scene pages drawn this run / kept from an earlier one;
+    flagged_frames: frames any rule flags; rule_frames: rule name -> frames it flags (evaluated rules only)."""
 
     index: Path
     scenes: int
     rendered: int
     reused: int
     flagged_frames: int
+    rule_frames: dict[str, int]
 
 
 def reason_group(reason: str) -> str:
@@ -108,7 +110,8 @@ def write_report(root: str, out: Path | None = None, *, every: int = 10, work_ro
     _write_gallery(out, gallery)
     index = out / "index.html"
     index.write_text(_index_page(root, ds.metadata, frames, flags, scenes, log, len(gallery)))
-    return ReportResult(index, len(scenes), rendered, len(scenes) - rendered, len(gallery))
+    return ReportResult(index, len(scenes), rendered, len(scenes) - rendered, len(gallery),
+                        {name: int(mask.sum()) for name, mask in flags.masks.items()})
 
 
 def _palette(labels: dict) -> np.ndarray:
