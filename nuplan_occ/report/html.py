@@ -30,7 +30,7 @@ background:#f0ad4e;white-space:nowrap}.badge.failed{background:#d9534f}.badge.of
 .muted{color:#6b7580}.mono{font-family:ui-monospace,Menlo,Consolas,monospace;font-size:12px}
 .thumbs{display:flex;flex-wrap:wrap;gap:10px}
 figure{margin:0;background:#fff;border:1px solid #dde2e8;border-radius:6px;padding:6px;width:220px}
-figure img{width:220px;height:220px;image-rendering:pixelated;display:block}
+figure img{width:220px;height:220px;display:block}
 div.nogrid{width:208px;height:208px;padding:6px;overflow:hidden;word-break:break-all;font-size:11px;
 background:#fbeaea;color:#7a2320}
 figcaption{font-size:11px;margin-top:3px;word-break:break-all}

@@ -33,6 +33,7 @@ from nuplan_occ.report.flags import RULES, build_median, evaluate_rules
 from nuplan_occ.report.frames import load_frames
 from nuplan_occ.report.scene_page import GALLERY_PER_SCENE, GalleryItem, PageContext, is_current, read_gallery, render_scene
 from nuplan_occ.report.scenes import FIGURES, SceneSummary, summarize_scenes
+from nuplan_occ.storage import read_metadata
 
 SCENES_PER_PAGE = 100
 GALLERY_PER_PAGE = 60
@@ -81,35 +82,39 @@ def write_report(root: str, out: Path | None = None, *, every: int = 10, work_ro
     build's default work folder). progress(done, total, scene) is called per scene."""
     out = Path(out) if out is not None else Path(root.removeprefix("file://")) / "report"
     out.mkdir(parents=True, exist_ok=True)
-    ds = open_dataset(root)
+    metadata = read_metadata(root)
+    labels = {int(c["id"]): c for c in metadata["labels"]["classes"]}
     frames = load_frames(root)
     log = read_build_log(Path(work_root) if work_root else default_work_root(root))
-    flags = evaluate_rules(frames.columns, frames.ok, disabled=_rule_disabled(ds.metadata))
+    flags = evaluate_rules(frames.columns, frames.ok, disabled=_rule_disabled(metadata))
     scenes = summarize_scenes(frames, flags, scene_seconds(log))
     observed = frames.columns.get("qa_lidar_observed_fraction")
-    ctx = PageContext(root=root, every=every, palette=_palette(ds.labels),
-                      names={i: v["name"] for i, v in ds.labels.items()},
-                      colors={i: tuple(v["color"]) for i, v in ds.labels.items()},
+    ctx = PageContext(root=root, every=every, palette=_palette(labels),
+                      names={i: v["name"] for i, v in labels.items()},
+                      colors={i: tuple(v["color"]) for i, v in labels.items()},
                       observed_median=build_median(observed, frames.ok) if observed is not None else float("nan"))
     code = _code_key()
     gallery: list[GalleryItem] = []
     rendered = 0
+    ds = None  # opened when the first scene needs its grids
     for done, scene in enumerate(scenes):
         folder = out / "scenes" / scene.page_id
         key = _scene_key(frames.scene_key(scene.start, scene.stop), flags, scene, ctx, code)
         if is_current(folder, key):
             gallery += read_gallery(folder)
         else:
+            ds = ds or open_dataset(root)
             gallery += render_scene(scene, frames, flags, ds, ctx, folder, key)
             rendered += 1
         if progress:
             progress(done + 1, len(scenes), f"{scene.log} / {scene.scene}")
     _remove_stale(out / "scenes", {s.page_id for s in scenes})
-    ds.close()
+    if ds is not None:
+        ds.close()
     _write_scene_tables(out, scenes, flags)
     _write_gallery(out, gallery)
     index = out / "index.html"
-    index.write_text(_index_page(root, ds.metadata, frames, flags, scenes, log, len(gallery)))
+    index.write_text(_index_page(root, metadata, frames, flags, scenes, log, len(gallery)))
     return ReportResult(index, len(scenes), rendered, len(scenes) - rendered, len(gallery),
                         {name: int(mask.sum()) for name, mask in flags.masks.items()})
 
