@@ -1,6 +1,7 @@
 """PyTorch view of a dataset: `OccupancyDataset` yields clips of consecutive frames of one scene.
 
-Item of a clip of T frames (T = clip_len):
+A clip is T = clip_len ok frames of one scene with consecutive `output_index` (the build's rate: 0.1 s
+steps at 10 Hz); a failed or missing frame breaks the run. Item of a clip:
     <key> for key in `keys`: tensor [T, X, Y, Z] (flow [T, X, Y, Z, 3]), dtype as stored
           (semantics uint8, masks bool, instance uint16, flow float16 m/s), each frame in its own ego frame;
     poses: float64 [T, 4, 4], T_first_from_t = inv(ego_to_global[0]) @ ego_to_global[t], i.e. frame t's
@@ -8,7 +9,7 @@ Item of a clip of T frames (T = clip_len):
     ego_to_global: float64 [T, 4, 4]; timestamp_us, frame_index: int64 [T];
     tokens: list of T lidar_pc tokens; scene_token, log_name: str.
 Unknown identity (an imported release without its logs): poses NaN, timestamp_us / frame_index -1,
-scene_token / log_name None; frames without a frame_index only form clips of length 1.
+scene_token / log_name None; frames of unknown scene only form clips of length 1.
 Clips and subsets are chosen from manifest columns only (see `nuplan_occ.storage.clips`).
 Works with DataLoader workers: each worker reopens its shard handles after the fork.
 """
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 import torch
 
 from nuplan_occ.dataset import OccDataset
@@ -27,13 +27,23 @@ from nuplan_occ.storage.errors import DatasetFormatError
 
 
 def _speeds(ds: OccDataset, name: str) -> np.ndarray:
-    if name not in ds.manifest.column_names:
+    if not ds.has_column(name):
         raise DatasetFormatError(f"{ds.root}: manifest has no {name!r} column, needed for subsets")
-    return ds.manifest[name].cast(pa.float64()).fill_null(np.nan).to_numpy()
+    return ds.column(name).cast(pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+
+
+def _output_index(ds: OccDataset, scenes: np.ndarray) -> np.ndarray:
+    """The manifest's output_index; derived from frame_index for scenes written without it."""
+    derived = clips.output_index_from_frame_index(scenes, ds.frame_index)
+    if not ds.has_column("output_index"):
+        return derived
+    stored = ds.column("output_index").cast(pa.int64()).fill_null(-1).to_numpy(zero_copy_only=False)
+    return np.where(stored >= 0, stored, derived)
 
 
 class OccupancyDataset(torch.utils.data.Dataset):
-    """Clips of `clip_len` consecutive frames of one scene, starts `stride` frames apart within a run.
+    """Clips of `clip_len` consecutive output frames of one scene (consecutive `output_index`), starts
+    `stride` frames apart within a run.
 
     subset: None (all clips), "spatial" (ego_speed > theta_e) or "temporal" (ego_speed < theta_e and
     max_agent_speed > theta_o), speeds in m/s from the manifest; a clip is in a subset iff all its
@@ -52,9 +62,8 @@ class OccupancyDataset(torch.utils.data.Dataset):
     ):
         self.ds = OccDataset(path)
         self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
-        scenes = pc.fill_null(self.ds.manifest["scene_token"], "").combine_chunks().dictionary_encode().indices
-        scenes = scenes.to_numpy()
-        frames = self.ds.manifest["frame_index"].fill_null(-1).to_numpy()
+        scenes = self.ds.scene_codes
+        frames = _output_index(self.ds, scenes)
         self._order = clips.clip_order(scenes, frames)
         starts = clips.clip_starts(scenes, frames, self._order, clip_len, stride)
         if subset is not None:

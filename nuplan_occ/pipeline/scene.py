@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nuplan_occ.io.types import Boxes, CameraCalibration, LogMeta, PointCloud
+from nuplan_occ.io.types import Boxes, CameraCalibration, LidarFrame, LogMeta, PointCloud
+from nuplan_occ.storage.clips import output_index_from_timestamps
 
 
 @dataclass(frozen=True)
@@ -17,7 +18,8 @@ class SceneTask:
     """Everything a worker needs to build one scene; plain values so it crosses process/Ray boundaries.
 
     out_root: dataset root (path or fsspec URL); work_root: local folder for stage outputs.
-    params: stage name -> params instance.
+    params: stage name -> params instance. keep_work: work-folder policy after publishing (all,
+    default, none; see `pipeline.publish`), not part of any cache key.
     """
 
     db_path: str
@@ -30,6 +32,7 @@ class SceneTask:
     out_root: str
     work_root: str
     params: dict = field(hash=False, compare=False, default_factory=dict)
+    keep_work: str = "default"
 
     @property
     def work_dir(self) -> Path:
@@ -40,6 +43,18 @@ class SceneTask:
     def shard_key(self) -> str:
         """One tar shard per scene: shards/<log>/<scene name>.tar."""
         return f"{self.log_name}/{self.scene_name}"
+
+
+def output_slots(own: list[LidarFrame], rate_hz: float, sweep_rate_hz: float) -> dict[str, int]:
+    """token -> output index of a scene's output frames: its frames `own` (time order) whose log index is
+    a multiple of step = round(sweep_rate_hz / rate_hz), numbered by
+    `nuplan_occ.storage.clips.output_index_from_timestamps` (period step sweeps, tolerance half a sweep)."""
+    step = max(1, int(round(sweep_rate_hz / rate_hz)))
+    outputs = [frame for frame in own if frame.index % step == 0]
+    sweep_period_us = 1e6 / sweep_rate_hz
+    slots = output_index_from_timestamps(np.array([f.timestamp_us for f in outputs], dtype=np.int64),
+                                         step * sweep_period_us, 0.5 * sweep_period_us)
+    return {frame.token: int(slot) for frame, slot in zip(outputs, slots)}
 
 
 def log_id_of(log_name: str) -> int:
@@ -67,6 +82,8 @@ class Sweep:
     cloud: points in the EGO frame of this sweep (None when the sweep failed to load: see failure).
     boxes: the sweep's boxes in its ego frame (logged pose); boxes_global as stored.
     is_output: True for the sweeps written to the dataset (the output rate, e.g. every other sweep).
+    output_index: an output sweep's index among its scene's output frames (the manifest's `output_index`,
+    see `nuplan_occ.storage.clips`); -1 for the other sweeps.
     """
 
     token: str
@@ -78,6 +95,7 @@ class Sweep:
     boxes_global: Boxes
     is_output: bool
     failure: str = ""
+    output_index: int = -1
 
 
 @dataclass
