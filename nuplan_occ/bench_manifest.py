@@ -3,7 +3,7 @@ Writes bench/report-manifest.json and bench/report-manifest.md.
 
 Sections:
 - commit: time of one scene commit (190 rows) into a manifest of 1 k and 19 k simulated scenes
-  (190 rows each, one fragment per scene), median over repeated commits;
+  (190 rows each, one shard and so one fragment per scene), median over repeated commits;
 - open: `open_dataset` over 3.6 M simulated rows (19 k fragments, then after `compact`): wall time and
   peak RSS of a fresh process, token lookup and random frame-identity reads, and the clip index of
   `OccupancyDataset`; compaction time;
@@ -29,7 +29,7 @@ import pyarrow.parquet as pq
 
 from nuplan_occ import __version__
 from nuplan_occ.storage import DatasetWriter
-from nuplan_occ.storage.fragments import scene_dir
+from nuplan_occ.storage.fragments import shard_dir
 from nuplan_occ.storage.simulated_manifest import simulated_manifest
 
 FRAMES_PER_SCENE = 190
@@ -75,7 +75,7 @@ def _populate(root: Path, table, n_scenes: int, start: int) -> None:
     """Write scenes [start, n_scenes) of the simulated table as one fragment each."""
     for s in range(start, n_scenes):
         rows = table.slice(s * FRAMES_PER_SCENE, FRAMES_PER_SCENE)
-        folder = Path(scene_dir(str(root), rows["log"][0].as_py(), rows["scene_token"][0].as_py()))
+        folder = Path(shard_dir(str(root), rows["shard"][0].as_py()))
         folder.mkdir(parents=True, exist_ok=True)
         pq.write_table(rows, folder / f"{rows['commit_id'][0].as_py()}.parquet", compression="zstd")
 
@@ -113,7 +113,7 @@ def bench_commit_and_open(work: Path, scene_counts: tuple[int, ...] = SCENE_COUN
         out["commit"][str(n)] = {"scenes": n, "rows": n * FRAMES_PER_SCENE, "median_s": statistics.median(times),
                                  "max_s": max(times)}
         for k in range(COMMITS_PER_POINT):  # keep the population at exactly n scenes for the next point
-            shutil.rmtree(Path(scene_dir(str(root), f"new-{n}-{k}", "any")).parent, ignore_errors=True)
+            shutil.rmtree(Path(shard_dir(str(root), f"new-{n}-{k}")), ignore_errors=True)
     small, large = (out["commit"][str(n)]["median_s"] for n in scene_counts)
     out["commit"]["ratio_19k_to_1k"] = large / small
     out["scene_counts"] = list(scene_counts)

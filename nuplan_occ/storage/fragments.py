@@ -1,23 +1,30 @@
-"""The manifest folder: one immutable Parquet fragment per scene and commit, read as one table.
+"""The manifest folder: one immutable Parquet fragment per shard and commit, read as one table.
 
 Layout under a dataset root (local path or fsspec URL):
-    manifest/scenes/<log>/<scene_token>/<commit_id>.parquet   the rows of one scene, published by one commit
-    manifest/compacted/<commit_id>.parquet                     fragments folded by `nuplan-occ compact`
-    manifest.parquet                                           a dataset written before fragments existed
-(<log> with characters outside [A-Za-z0-9_-] replaced by "_"). Every file is published whole (temp +
-rename locally, one put on object stores) under a name nobody else writes, so readers see a fragment
-entirely or not at all and no writer waits for another.
+    manifest/shards/<shard key>/<commit_id>.parquet   the rows of one shard, published by one commit
+    manifest/compacted/<commit_id>.parquet             fragments folded by `nuplan-occ compact`
+    manifest/scenes/<log>/<scene_token>/<commit_id>.parquet   fragments written when the unit was the scene
+    manifest.parquet                                   a dataset written before fragments existed
+(each "/"-separated part of <shard key> with characters outside [A-Za-z0-9_-] replaced by "_"). Every
+file is published whole (temp + rename locally, one put on object stores) under a name nobody else
+writes, so readers see a fragment entirely or not at all and no writer waits for another.
+
+The unit of publication and supersession is the shard: every row, ok or failed, names its shard (the
+`shard` column; a failed frame's row names the shard its chunk or scene was written to). A build
+writes one shard per scene (`shards/<log>/<scene>.tar`) and a rebuilt scene rewrites the same shard
+key; an import writes chunks of frames, each its own shard, and redoing a chunk rewrites it whole
+under its key. Rows whose scene is unknown (null scene_token) need no scene to be published.
 
 Commit ids are `<ns:019d>-<tiebreak:016x>`: nanoseconds since the epoch, raised to 1 ns past the
-newest commit the writer can see for its scenes (their scene folders and the compacted files), then 64
-random bits. They sort as strings; "newest" is the greatest id. A rebuild of a scene on any machine
-therefore supersedes every commit of that scene it could see, whatever the machines' clocks say; two
-writers racing on one scene end with the one whose id sorts last.
+newest commit the writer can see for its shards (their shard folders and the compacted files), then 64
+random bits. They sort as strings; "newest" is the greatest id. A rewrite of a shard on any machine
+therefore supersedes every commit of that shard it could see, whatever the machines' clocks say; two
+writers racing on one shard end with the one whose id sorts last.
 
-Visible rows ("newest wins", `visible_rows`): for every scene_token, the rows of its greatest commit id
+Visible rows ("newest wins", `visible_rows`): for every shard key, the rows of its greatest commit id
 (rows without a commit id, from a pre-fragment manifest.parquet, are older than any commit); where
 two files hold that commit (a compaction that has written its output but not yet deleted its inputs)
-only the first file counts. The unit is the scene: a rebuild that writes fewer frames hides the rest.
+only the first file counts. A rewrite of a shard with fewer frames hides the rest.
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ from nuplan_occ.storage.manifest import to_parquet_bytes
 
 LEGACY_MANIFEST = "manifest.parquet"
 FRAGMENTS_DIR = "manifest"
+SHARDS_DIR = f"{FRAGMENTS_DIR}/shards"
 SCENES_DIR = f"{FRAGMENTS_DIR}/scenes"
 COMPACTED_DIR = f"{FRAGMENTS_DIR}/compacted"
 COMMIT_COLUMN = "commit_id"
@@ -46,9 +54,9 @@ _COMMIT_ID = re.compile(r"^[0-9]{19}-[0-9a-f]{16}$")
 _UNSAFE = re.compile(r"[^A-Za-z0-9_-]")
 
 
-def scene_dir(root_path: str, log: str, scene_token: str) -> str:
-    """Folder of one scene's fragments."""
-    return f"{root_path}/{SCENES_DIR}/{_UNSAFE.sub('_', log)}/{_UNSAFE.sub('_', scene_token)}"
+def shard_dir(root_path: str, shard: str) -> str:
+    """Folder of one shard's fragments (see module docstring for the name)."""
+    return f"{root_path}/{SHARDS_DIR}/" + "/".join(_UNSAFE.sub("_", part) for part in shard.split("/"))
 
 
 def _commit_ids_in(fs: fsspec.AbstractFileSystem, folder: str) -> list[str]:
@@ -75,7 +83,7 @@ def content_digest(table: pa.Table) -> str:
 
 
 def _newest_digest(fs: fsspec.AbstractFileSystem, folder: str) -> str | None:
-    """Content digest stored in the newest fragment of a scene folder (None without one)."""
+    """Content digest stored in the newest fragment of a shard folder (None without one)."""
     ids = _commit_ids_in(fs, folder)
     if not ids:
         return None
@@ -86,15 +94,13 @@ def _newest_digest(fs: fsspec.AbstractFileSystem, folder: str) -> str | None:
 
 
 def publish_fragments(fs: fsspec.AbstractFileSystem, root_path: str, table: pa.Table) -> list[str]:
-    """Publish `table` (rows of one commit, any number of scenes) as one fragment per scene, all with
-    one new commit id; a scene whose newest fragment already holds equal rows is left as it is.
-    Returns the paths written. Cost: the scenes' own folders only."""
-    scenes = pc.unique(table["scene_token"]).to_pylist()
+    """Publish `table` (rows of one commit, any number of shards) as one fragment per shard, all with
+    one new commit id; a shard whose newest fragment already holds equal rows is left as it is.
+    Returns the paths written. Cost: the shards' own folders only."""
     groups = []
-    for scene_token in sorted(scenes):
-        rows = table.filter(pc.equal(table["scene_token"], scene_token)).combine_chunks()
-        log = rows["log"][0].as_py()
-        folder = scene_dir(root_path, log, scene_token)
+    for shard in sorted(pc.unique(table["shard"]).to_pylist()):
+        rows = table.filter(pc.equal(table["shard"], shard)).combine_chunks()
+        folder = shard_dir(root_path, shard)
         digest = content_digest(rows)
         if _newest_digest(fs, folder) != digest:
             groups.append((folder, rows, digest))
@@ -114,7 +120,8 @@ def publish_fragments(fs: fsspec.AbstractFileSystem, root_path: str, table: pa.T
 
 def manifest_files(fs: fsspec.AbstractFileSystem, root_path: str) -> list[str]:
     """Every published manifest file of a root: the legacy manifest.parquet first, then compacted files,
-    then scene fragments, each group in name order (temp files of interrupted writes are not listed)."""
+    then scene fragments (written when the unit was the scene), then shard fragments, each group in name
+    order (temp files of interrupted writes are not listed)."""
     legacy = [f"{root_path}/{LEGACY_MANIFEST}"] if fs.exists(f"{root_path}/{LEGACY_MANIFEST}") else []
 
     def parquet_under(folder: str) -> list[str]:
@@ -124,7 +131,8 @@ def manifest_files(fs: fsspec.AbstractFileSystem, root_path: str) -> list[str]:
             return []
         return sorted(p for p in found if p.endswith(".parquet") and not p.rsplit("/", 1)[-1].startswith("."))
 
-    return legacy + parquet_under(f"{root_path}/{COMPACTED_DIR}") + parquet_under(f"{root_path}/{SCENES_DIR}")
+    return legacy + [path for folder in (COMPACTED_DIR, SCENES_DIR, SHARDS_DIR)
+                     for path in parquet_under(f"{root_path}/{folder}")]
 
 
 def commit_ranks(commit_ids: pa.ChunkedArray | pa.Array) -> np.ndarray:
@@ -140,15 +148,16 @@ def commit_ranks(commit_ids: pa.ChunkedArray | pa.Array) -> np.ndarray:
     return ranks
 
 
-def visible_rows(scene_codes: np.ndarray, ranks: np.ndarray, file_of_row: np.ndarray) -> np.ndarray:
-    """Bool per row: the row is visible (see module docstring). scene_codes: int codes of scene_token;
-    ranks: `commit_ranks`; file_of_row: index of the file holding the row (files in `manifest_files` order)."""
-    if not len(scene_codes):
+def visible_rows(shard_codes: np.ndarray, ranks: np.ndarray, file_of_row: np.ndarray) -> np.ndarray:
+    """Bool per row: the row is visible (see module docstring). shard_codes: int codes of the shard
+    column; ranks: `commit_ranks`; file_of_row: index of the file holding the row (files in
+    `manifest_files` order)."""
+    if not len(shard_codes):
         return np.zeros(0, dtype=bool)
-    n_scenes = int(scene_codes.max()) + 1
-    newest = np.full(n_scenes, -2, dtype=np.int64)
-    np.maximum.at(newest, scene_codes, ranks)
-    keep = ranks == newest[scene_codes]
-    first_file = np.full(n_scenes, np.iinfo(np.int64).max, dtype=np.int64)
-    np.minimum.at(first_file, scene_codes[keep], file_of_row[keep])
-    return keep & (file_of_row == first_file[scene_codes])
+    n_shards = int(shard_codes.max()) + 1
+    newest = np.full(n_shards, -2, dtype=np.int64)
+    np.maximum.at(newest, shard_codes, ranks)
+    keep = ranks == newest[shard_codes]
+    first_file = np.full(n_shards, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(first_file, shard_codes[keep], file_of_row[keep])
+    return keep & (file_of_row == first_file[shard_codes])

@@ -1,5 +1,5 @@
 """Reading the manifest: every published manifest file of a root as one row space, resolved to the
-visible rows (`fragments.visible_rows`) in manifest order (log_id, timestamp_us, frame_index, token).
+visible rows (`fragments.visible_rows`: per shard, its newest commit) in manifest order (log_id, timestamp_us, frame_index, token).
 
 `ManifestIndex` reads only the columns it is asked for: opening reads the few index columns that
 resolution and ordering need; other columns are read whole (`column`) or for chosen rows only
@@ -42,7 +42,8 @@ class ManifestIndex:
     """The visible manifest rows of a dataset root, in manifest order; see the module docstring.
 
     `rows`: position in the files' row space of every visible row, in manifest order (int64);
-    `scene_codes`: an int per visible row, equal within a scene_token.
+    `scene_codes`: an int per visible row, equal within a scene_token; a row of unknown scene (null
+    scene_token) gets a code of its own, so clips never join frames of unknown scenes.
     `schema`: the union of the files' columns (a column a file lacks reads as null there).
     `paths`, `file_row_counts`: the manifest files read and their row counts (superseded rows included).
     """
@@ -83,12 +84,12 @@ class ManifestIndex:
         self.file_row_counts = counts
         self._file_start = np.concatenate([[0], np.cumsum(counts)])
         self._group_starts = [np.concatenate([[0], np.cumsum(groups)]) for _, groups in footers]
-        index = self._read(["scene_token", COMMIT_COLUMN, *SORT_KEYS[:3]])
+        index = self._read(["shard", "scene_token", COMMIT_COLUMN, *SORT_KEYS[:3]])
         file_of_row = np.repeat(np.arange(len(paths)), counts)
-        scenes = pc.dictionary_encode(index["scene_token"].combine_chunks()).indices.to_numpy()
-        keep = np.flatnonzero(visible_rows(scenes, commit_ranks(index[COMMIT_COLUMN]), file_of_row))
+        shards = pc.dictionary_encode(index["shard"].combine_chunks()).indices.to_numpy()
+        keep = np.flatnonzero(visible_rows(shards, commit_ranks(index[COMMIT_COLUMN]), file_of_row))
         self.rows = keep[self._manifest_order(index, keep)]
-        self.scene_codes = scenes[self.rows]
+        self.scene_codes = _scene_codes(index["scene_token"].take(pa.array(self.rows)))
         self._in_file_order = len(self.rows) == self._file_start[-1] and bool(np.all(np.diff(self.rows) == 1))
 
     def _read(self, columns: list[str]) -> pa.Table:
@@ -101,7 +102,8 @@ class ManifestIndex:
 
     def _manifest_order(self, index: pa.Table, keep: np.ndarray) -> np.ndarray:
         """Order of the kept rows by SORT_KEYS (token breaks ties only where the integer keys tie)."""
-        keys = [index[name].to_numpy()[keep] for name in SORT_KEYS[:3]]
+        last = np.iinfo(np.int64).max  # a null (unknown) key sorts after every known one, as in `ordered`
+        keys = [index[name].cast(pa.int64()).fill_null(last).to_numpy()[keep] for name in SORT_KEYS[:3]]
         stacked = np.stack(keys, axis=1) if len(keep) else np.zeros((0, 3), np.int64)
         if len(keep) < 2 or np.all(_lex_less_equal(stacked[:-1], stacked[1:])):
             order = np.arange(len(keep))
@@ -167,6 +169,15 @@ class ManifestIndex:
                 self._cache.popitem(last=False)
         self._cache[key] = table
         return table
+
+
+def _scene_codes(scene_tokens: pa.ChunkedArray) -> np.ndarray:
+    """int64 code per row, equal within a scene_token; each null gets a code of its own."""
+    encoded = pc.dictionary_encode(scene_tokens.combine_chunks())
+    codes = encoded.indices.fill_null(-1).to_numpy().astype(np.int64)
+    unknown = codes < 0
+    codes[unknown] = len(encoded.dictionary) + np.arange(int(unknown.sum()))
+    return codes
 
 
 def _footer(path: str, filesystem: pafs.FileSystem) -> tuple[pa.Schema, np.ndarray]:

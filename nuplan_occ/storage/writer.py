@@ -222,11 +222,12 @@ class DatasetWriter:
 
     # ------------------------------------------------------------------ commit
     def commit(self, rows: list[dict]) -> list[str]:
-        """Publish dataset.json and `rows` as one fragment per scene under one new commit id; returns the
-        fragment paths written.
+        """Publish dataset.json and `rows` as one fragment per shard (the rows' `shard` column) under one
+        new commit id; returns the fragment paths written.
 
-        A scene's rows supersede every older commit of that scene (`fragments.visible_rows`); a scene
-        whose newest fragment already holds equal rows gets no new fragment (a rerun publishes nothing).
+        A shard's rows supersede every older commit of that shard (`fragments.visible_rows`), so a commit
+        must hold all rows of every shard it names; a shard whose newest fragment already holds equal
+        rows gets no new fragment (a rerun publishes nothing).
         dataset.json describes the build that committed last. Raises DatasetFormatError if an ok row's
         shard is missing, InvalidFrameError if rows repeat a (log, token) pair.
         """

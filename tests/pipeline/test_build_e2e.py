@@ -112,5 +112,5 @@ def test_build_to_an_fsspec_url_matches_the_local_build(synthetic_root, referenc
     assert {p.name for p in (reference_build / "work").glob("*/*/*")} == {"register", "track", "reconstruct", "write"}
     assert "voxelize" in summary.stage_seconds and not {"register", "track", "reconstruct"} & set(summary.stage_seconds)
     assert content_digests(url) == tree_digest(reference_build)
-    assert any("/manifest/scenes/" in path for path in fsspec.filesystem("memory").find("/nuplan-occ-test/out"))
+    assert any("/manifest/shards/" in path for path in fsspec.filesystem("memory").find("/nuplan-occ-test/out"))
     assert len(open_dataset(url)) == len(open_dataset(str(reference_build)))

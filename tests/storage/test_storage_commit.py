@@ -47,7 +47,7 @@ def test_outputs_are_byte_identical_across_runs_and_commit_batching(tmp_path):
     assert set(one) == {"dataset.json", "manifest", "shards/log-a.tar", "shards/log-b.tar"}
     assert one == _files(tmp_path / "two") == _files(tmp_path / "batched")
     fragments = sorted(p.relative_to(tmp_path / "batched").parts[:3] for p in (tmp_path / "batched").rglob("*.parquet"))
-    assert fragments == [("manifest", "scenes", "log-a")] + [("manifest", "scenes", "log-b")] * 2  # one per scene
+    assert fragments == [("manifest", "shards", "log-a"), ("manifest", "shards", "log-b")]  # one per shard
 
 
 def test_manifest_sorted_and_failed_rows_kept(tmp_path):
@@ -86,7 +86,7 @@ def test_crash_during_publish_leaves_temp_only_and_rerun_is_identical(tmp_path, 
     monkeypatch.undo()
     leftovers = [p.name for p in (root / "shards").iterdir()]
     assert "log-b.tar" not in leftovers and any(name.startswith(".log-b.tar.tmp-") for name in leftovers)
-    fragment_dir = next((root / "manifest" / "scenes" / "log-a").iterdir())
+    fragment_dir = root / "manifest" / "shards" / "log-a"
     (fragment_dir / ".1796162835093246242-11ecdfd64da418a0.parquet.tmp-1-deadbeef").write_bytes(b"half a parquet file")
     assert len(open_dataset(str(root))) == 4
     assert validate_dataset(str(root)) == []

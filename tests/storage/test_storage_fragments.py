@@ -1,4 +1,4 @@
-"""The append-only manifest: per-scene fragments, newest commit wins, compaction, legacy datasets,
+"""The append-only manifest: per-shard fragments, newest commit wins, compaction, legacy datasets,
 and the DuckDB / pyarrow one-liners of the README."""
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def _commit_log(writer: DatasetWriter, log: str, log_id: int, scenes: list[int],
     writer.commit(writer.write_shard(log, records))
 
 
-def test_rebuilt_scene_supersedes_its_rows_even_with_a_clock_behind(monkeypatch):
+def test_rewritten_shard_supersedes_its_rows_even_with_a_clock_behind(monkeypatch):
     root = "memory://fragments-test/newest"
     writer = _writer(root)
     _commit_log(writer, "log-a", 0, [2, 3], speed=1.0)
@@ -47,15 +47,15 @@ def test_rebuilt_scene_supersedes_its_rows_even_with_a_clock_behind(monkeypatch)
     records = synthetic_log(SMALL, "log-a", 0, [2, 2], ego_speeds=[2.0] * 4)  # rebuilt with fewer frames
     writer.commit(writer.write_shard("log-a", records))
     table = read_manifest(root)
-    assert table["ego_speed"].to_pylist() == [2.0] * 4  # old scene rows hidden, including the dropped frame
+    assert table["ego_speed"].to_pylist() == [2.0] * 4  # old shard rows hidden, including the dropped frame
     assert table["frame_index"].to_pylist() == [0, 1, 2, 3]
     ids = pc.unique(table["commit_id"]).to_pylist()
     assert len(ids) == 1 and int(ids[0][:19]) > time.time_ns()
-    assert len(fsspec.filesystem("memory").find("/fragments-test/newest/manifest")) == 4  # 2 scenes x 2 commits
+    assert len(fsspec.filesystem("memory").find("/fragments-test/newest/manifest")) == 2  # 1 shard x 2 commits
     assert len(open_dataset(root)) == 4 and validate_dataset(root) == []
 
 
-def test_equal_rerun_commits_nothing_and_commit_reads_only_its_scenes(tmp_path, monkeypatch):
+def test_equal_rerun_commits_nothing_and_commit_reads_only_its_shards(tmp_path, monkeypatch):
     writer = _writer(str(tmp_path))
     _commit_log(writer, "log-a", 0, [3], speed=1.0)
     before = sorted(tmp_path.rglob("*.parquet"))
@@ -65,7 +65,7 @@ def test_equal_rerun_commits_nothing_and_commit_reads_only_its_scenes(tmp_path, 
     original = fragments._commit_ids_in
     monkeypatch.setattr(fragments, "_commit_ids_in", lambda fs, folder: listed.append(folder) or original(fs, folder))
     _commit_log(writer, "log-b", 1, [3], speed=1.0)
-    assert all("/log-b/" in f or f.endswith("/compacted") for f in listed)  # never the whole manifest
+    assert listed and all(f.endswith(("/shards/log-b", "/compacted")) for f in listed)  # never the whole manifest
 
 
 def test_compaction_keeps_what_readers_see_and_is_safe_with_writers(tmp_path, monkeypatch):
@@ -80,7 +80,7 @@ def test_compaction_keeps_what_readers_see_and_is_safe_with_writers(tmp_path, mo
     deleted = []
     monkeypatch.setattr(type(fsspec.filesystem("file")), "rm_file", lambda self, path: deleted.append(path))
     result = compact(root)  # "crashes" before deleting its inputs: output and inputs side by side
-    assert result.rows_before == 15 and result.rows_after == 7 and len(deleted) == 7
+    assert result.rows_before == 15 and result.rows_after == 7 and len(deleted) == 4
     assert read_manifest(root).equals(seen)
     monkeypatch.undo()
     compact(root)
@@ -94,7 +94,7 @@ def test_compaction_keeps_what_readers_see_and_is_safe_with_writers(tmp_path, mo
     assert _speeds(root) == [3.0] * 4 + [6.0] * 3
 
 
-def test_pre_fragment_manifest_stays_readable_and_is_superseded_per_scene(tmp_path):
+def test_pre_fragment_manifest_stays_readable_and_is_superseded_per_shard(tmp_path):
     root = str(tmp_path)
     writer = _writer(root)
     rows = [r for log, lid in (("log-a", 0), ("log-b", 1))
@@ -110,6 +110,32 @@ def test_pre_fragment_manifest_stays_readable_and_is_superseded_per_scene(tmp_pa
     assert not (tmp_path / "manifest.parquet").exists() and _speeds(root) == [1.0] * 3 + [4.0] * 3
 
 
+def _unknown_identity(records: list) -> list:
+    """The records as an imported release without its logs gives them: only the token is known."""
+    for r in records:
+        r.log = r.scene_token = r.scene_name = r.log_id = r.frame_index = r.timestamp_us = r.ego_to_global = None
+    return records
+
+
+def test_shard_is_the_unit_so_chunks_of_a_scene_and_of_unknown_scenes_stay_visible(tmp_path):
+    root = str(tmp_path)
+    writer = _writer(root)
+    scene = synthetic_log(SMALL, "log-a", 0, [4])
+    writer.commit(writer.write_shard("log-a/part-0", scene[:2]))  # one scene over two commits
+    writer.commit(writer.write_shard("log-a/part-1", scene[2:]))
+    unknown = _unknown_identity(synthetic_log(SMALL, "log-u", 1, [3]))
+    writer.commit(writer.write_shard("release/part-0", unknown[:2]))  # null scene_token, two commits
+    writer.commit(writer.write_shard("release/part-1", unknown[2:]))
+    index = ManifestIndex(root)
+    assert sorted(index.column("token").to_pylist()) == sorted(r.token for r in scene + unknown)
+    codes = index.scene_codes
+    known = index.column("scene_token").is_valid().to_numpy(zero_copy_only=False)
+    assert len(set(codes[known])) == 1 and len(set(codes[~known])) == 3 and not set(codes[known]) & set(codes[~known])
+    writer.commit(writer.write_shard("log-a/part-0", scene[:1]))  # rewritten with fewer frames
+    assert sorted(read_manifest(root)["token"].to_pylist()) == sorted(r.token for r in scene[:1] + scene[2:] + unknown)
+    assert validate_dataset(root) == []
+
+
 def test_readme_queries_duckdb_and_pyarrow_dataset(tmp_path):
     duckdb = pytest.importorskip("duckdb")
     root = str(tmp_path)
@@ -120,8 +146,8 @@ def test_readme_queries_duckdb_and_pyarrow_dataset(tmp_path):
     expected = read_manifest(root)
     # the README's line, verbatim but for the root
     query = (f"SELECT * FROM read_parquet('{root}/manifest/**/*.parquet', union_by_name = true) "
-             "QUALIFY commit_id = max(commit_id) OVER (PARTITION BY scene_token) "
-             "AND row_number() OVER (PARTITION BY scene_token, token ORDER BY commit_id DESC) = 1 "
+             "QUALIFY commit_id = max(commit_id) OVER (PARTITION BY shard) "
+             "AND row_number() OVER (PARTITION BY shard, token ORDER BY commit_id DESC) = 1 "
              "ORDER BY log_id, timestamp_us, frame_index, token")
     got = duckdb.sql(query).arrow()
     got = got.read_all() if hasattr(got, "read_all") else got
@@ -140,7 +166,7 @@ def test_reader_opens_with_index_columns_only_and_finds_frames(tmp_path, monkeyp
     original = ManifestIndex._read
     monkeypatch.setattr(ManifestIndex, "_read", lambda self, cols: read_columns.extend(cols) or original(self, cols))
     ds = open_dataset(str(tmp_path))
-    assert set(read_columns) <= {"scene_token", "commit_id", "log_id", "timestamp_us", "frame_index", "status", "token"}
+    assert set(read_columns) <= {"shard", "scene_token", "commit_id", "log_id", "timestamp_us", "frame_index", "status", "token"}
     ok = table.filter(pc.equal(table["status"], "ok"))
     assert len(ds) == ok.num_rows == 2940
     for i in (0, 1234, len(ds) - 1):

@@ -45,8 +45,8 @@ def test_manifest_schema_lists_every_column():
 
 
 def _fragment(root):
-    """The first scene fragment of the fixture's manifest."""
-    return sorted(root.glob("manifest/scenes/*/*/*.parquet"))[0]
+    """The first shard fragment of the fixture's manifest."""
+    return sorted(root.glob("manifest/shards/**/*.parquet"))[0]
 
 
 def test_schema_violation_is_reported(root):
