@@ -6,15 +6,18 @@ committing what was done), its grid is moved onto ours (z in [-3, 5) m: a releas
 [-5, 3) m is shifted by whole voxels; with frame "lidar" and the log's extrinsic at hand it is
 resampled into the ego frame, otherwise kept in the LiDAR frame and marked so), and it is written with
 `DatasetWriter` into `shards/release/<folder>/part-NNNNN.tar`, `chunk_frames` frames per shard.
-A malformed file gets a failed row with its reason. The identity (log, scene, frame index, timestamp,
+A malformed file gets a failed row with its reason (in the manifest, rows of its chunk's shard). The identity (log, scene, frame index, timestamp,
 ego_to_global) and filter columns come from the nuPlan DBs when `logs_root` is given; otherwise they
 are null. Extra columns per frame: release_folder, release_layout (sparse4 | sparse2 | dense),
 release_frame (the frame the stored grid is in: ego | lidar), release_log_matched (null without logs).
 
 Streaming: files are read one at a time; a chunk of at most `chunk_frames` decoded grids (5.1 MB each
 at 400 x 400 x 32) is held until its shard is written. Resumable: a rerun into the same OUT with the
-same conventions skips tokens already imported (status ok) and retries failed ones; rows are committed
-every `commit_every_s` seconds and when the import ends or stops.
+same conventions skips tokens already imported (status ok) and retries failed ones. The manifest's unit
+is the shard (`storage.fragments`), so a chunk holding a failed frame is redone whole, its frames
+read again and written under the same shard key, and its new rows supersede the old; frames of chunks
+without failures are skipped. Rows are committed every `commit_every_s` seconds (whole chunks only)
+and when the import ends or stops.
 """
 
 from __future__ import annotations
@@ -27,7 +30,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pyarrow.compute as pc
 
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.io.errors import NuplanFormatError
@@ -100,17 +102,33 @@ def _check_options(options: ImportOptions) -> None:
         raise ReleaseImportError(f"chunk_frames must be >= 1, got {options.chunk_frames}")
 
 
-def _done_tokens(out: str, conventions: dict) -> set[str]:
-    """Tokens already imported (ok) into `out`; ReleaseImportError if `out` holds another kind of data."""
+@dataclass
+class _Previous:
+    """What an earlier run left in OUT: `done`, tokens of chunks without failures (skipped); `redo`,
+    per release folder the chunks holding a failed frame, as shard key -> its tokens."""
+
+    done: set[str] = field(default_factory=set)
+    redo: dict[str, dict[str, set[str]]] = field(default_factory=dict)
+
+
+def _previous(out: str, conventions: dict) -> _Previous:
+    """The earlier runs' chunks in `out`; ReleaseImportError if `out` holds another kind of data."""
     try:
         metadata = read_metadata(out)
     except DatasetFormatError:
-        return set()
+        return _Previous()
     if metadata.get("release") != conventions:
         raise ReleaseImportError(f"{out}: already holds a dataset not imported with these options "
                                  f"(layout, z, frame, labels, logs); import into a new OUT")
-    table = read_manifest(out)
-    return set(table.filter(pc.equal(table["status"], STATUS_OK))["token"].to_pylist())
+    rows = read_manifest(out, ["token", "status", "shard", "release_folder"]).to_pylist()
+    failed_shards = {row["shard"] for row in rows if row["status"] != STATUS_OK}
+    previous = _Previous()
+    for row in rows:
+        if row["shard"] in failed_shards:
+            previous.redo.setdefault(row["release_folder"], {}).setdefault(row["shard"], set()).add(row["token"])
+        else:
+            previous.done.add(row["token"])
+    return previous
 
 
 class _Importer:
@@ -124,7 +142,7 @@ class _Importer:
             raise ReleaseImportError(f"{folders[0].path}: {exc}") from None
         self.out_grid = output_grid(self.src_grid)
         self.conventions = _conventions(options, folders[0].kind, label_map)
-        self.done = _done_tokens(out, self.conventions)
+        self.previous = _previous(out, self.conventions)
         self.writer = DatasetWriter(out, {"params": {"import_release": asdict(options)}, "release": self.conventions},
                                     grid=self.out_grid)
         self.out = out
@@ -169,32 +187,44 @@ class _Importer:
             if not shard_exists(self.out, key):
                 return key
 
-    def flush(self, force_commit: bool = False) -> None:
+    def flush(self, force_commit: bool = False, shard_key: str | None = None) -> None:
+        """Write the chunk being filled (to `shard_key`, None: the folder's next unused key) and commit
+        the pending rows when due."""
         records, self.records = self.records, []
         if records:
-            self.pending += self.writer.write_shard(self.next_shard_key(self.folder), records)
+            self.pending += self.writer.write_shard(shard_key or self.next_shard_key(self.folder), records)
         if self.pending and (force_commit or time.monotonic() - self.last_commit >= self.options.commit_every_s):
             self.writer.commit(self.pending)
             self.pending, self.last_commit = [], time.monotonic()
 
+    def add_frame(self, path: Path, folder: ReleaseFolder, on_frame: Callable[[str], None]) -> None:
+        record = self.frame_record(path, folder)
+        self.records.append(record)
+        if record.status == STATUS_OK:
+            self.summary.imported += 1
+        else:
+            self.summary.failed += 1
+            self.summary.failure_reasons[record.failure_reason.split(": ", 1)[1]] += 1
+        on_frame(record.status)
+
     def run_folder(self, folder: ReleaseFolder, on_frame: Callable[[str], None]) -> None:
         self.folder, self.part = folder, 0
         files = self.logs.order_by_log(folder.files) if self.logs and folder.kind == "dense" else folder.files
+        redo = self.previous.redo.get(folder.name, {})
+        for shard_key, tokens in sorted(redo.items()):  # chunks with failed frames, rewritten whole
+            for path in files:
+                if path.stem in tokens:
+                    self.add_frame(path, folder, on_frame)
+            self.flush(shard_key=shard_key)
+        redone = set().union(*redo.values())
         for path in files:
-            if path.stem in self.done:
+            if path.stem in self.previous.done:
                 self.summary.skipped += 1
                 on_frame("skipped")
-                continue
-            record = self.frame_record(path, folder)
-            self.records.append(record)
-            if record.status == STATUS_OK:
-                self.summary.imported += 1
-            else:
-                self.summary.failed += 1
-                self.summary.failure_reasons[record.failure_reason.split(": ", 1)[1]] += 1
-            on_frame(record.status)
-            if len(self.records) >= self.options.chunk_frames:
-                self.flush()
+            elif path.stem not in redone:
+                self.add_frame(path, folder, on_frame)
+                if len(self.records) >= self.options.chunk_frames:
+                    self.flush()
         self.flush()
         self.summary.folders += 1
 

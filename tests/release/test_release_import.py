@@ -8,6 +8,7 @@ from typer.testing import CliRunner
 
 from nuplan_occ.cli import app
 from nuplan_occ.dataset import open_dataset
+from nuplan_occ.release.importer import ImportOptions, import_release
 from nuplan_occ.stats import dataset_stats
 from nuplan_occ.storage import read_manifest, read_metadata, validate_dataset
 from nuplan_occ.torch import OccupancyDataset
@@ -150,3 +151,30 @@ def test_eval_of_two_imports_and_the_side_by_side_picture(truth, tmp_path):
     bikes = sum(int((s == 3).sum()) for s in truth.values())
     assert pooled["per_class"]["3"] == pytest.approx(bikes / sum(int((s == 3).sum()) for s in changed.values()))
     assert picture.stat().st_size > 10_000 and "per frame" in result.output
+
+
+def test_a_fixed_file_is_reimported_with_its_chunk_and_leaves_no_failed_row(tmp_path):
+    truth = truth_frames(3, seed=1)
+    bad_token, *good = sorted(truth)
+    src = tmp_path / "release"
+    folder = write_sparse(src, FOLDER, {t: truth[t] for t in good}, columns=4)
+    (folder / f"{bad_token}.npz").write_bytes(b"not a zip")
+    out = str(tmp_path / "out")
+    options = ImportOptions(chunk_frames=2, commit_every_s=0.0)  # chunks [bad, good0], [good1], each committed
+    first = import_release(src, out, options)
+    assert (first.imported, first.failed) == (2, 1)
+    rows = read_manifest(out).to_pylist()
+    assert sorted(r["token"] for r in rows) == sorted(truth)  # every chunk's commit visible, no scene known
+    shards = {r["token"]: r["shard"] for r in rows}
+    assert shards[bad_token] == shards[good[0]] != shards[good[1]]
+
+    write_sparse(src, FOLDER, {bad_token: truth[bad_token]}, columns=4)  # the file is fixed
+    again = import_release(src, out, options)
+    assert (again.imported, again.failed, again.skipped) == (2, 0, 1)  # its chunk redone whole, the other skipped
+    rows = read_manifest(out).to_pylist()
+    assert [r["token"] for r in rows] == sorted(truth) and {r["status"] for r in rows} == {"ok"}  # unknown keys: by token
+    assert {r["token"]: r["shard"] for r in rows} == shards  # rewritten under the same shard keys
+    ds = open_dataset(out)
+    for token, semantics in truth.items():
+        np.testing.assert_array_equal(ds[ds.index_of_token(token)]["semantics"], semantics)
+    assert validate_dataset(out) == []
