@@ -23,7 +23,7 @@ from typing import Any
 
 from nuplan_occ import __version__
 from nuplan_occ.io.reader import NuplanLog
-from nuplan_occ.pipeline.scene import SceneTask
+from nuplan_occ.pipeline.scene import SceneTask, output_slots
 from nuplan_occ.storage import DatasetWriter, FrameRecord
 
 KEEP_WORK = ("all", "default", "none")
@@ -44,13 +44,14 @@ def scene_writer(task: SceneTask) -> DatasetWriter:
 def failed_scene_rows(task: SceneTask, reason: str) -> list[dict]:
     """Write failure rows for every output frame of a scene that could not be built at all."""
     load = task.params["load"]
-    rate_step = max(1, round(load.sweep_rate_hz / load.rate_hz))
     with NuplanLog(task.db_path, task.sensor_root) as log:
-        frames = [f for f in log.frames_of_scene(task.scene_token) if f.index % rate_step == 0]
+        own = log.frames_of_scene(task.scene_token)
+        slots = output_slots(own, load.rate_hz, load.sweep_rate_hz)
         records = [FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
                                scene_name=task.scene_name, frame_index=f.index, token=f.token,
                                timestamp_us=f.timestamp_us, ego_to_global=log.frame_pose(f), arrays={},
-                               columns={}, status="failed", failure_reason=reason) for f in frames]
+                               columns={"output_index": slots[f.token]}, status="failed", failure_reason=reason)
+                   for f in own if f.token in slots]
     return DatasetWriter(task.out_root, metadata={"params": {}}).write_shard(task.shard_key, records)
 
 
