@@ -225,8 +225,10 @@ def render_markdown(report: dict[str, Any]) -> str:
         lines += ["", f"`nuplan-occ compact` of {k['files_before']:,} fragments into one file ({k['rows']:,} rows, "
                   f"{k['bytes'] / 1e6:.0f} MB): {k['seconds']:.1f} s. The 3.6 M-row compacted file is written by "
                   f"the bench directly (same layout, {COMPACTED_ROWS_NOTE}). `OccupancyDataset(clip_len=8, stride=4, "
-                  f"subset='spatial')` index from columns at 3.6 M rows: {clips}. Open times exclude imports; RSS "
-                  f"is the whole process; probes are capped at {PROBE_MEMORY_LIMIT >> 30} GB of address space.", ""]
+                  f"subset='spatial')` index from columns at 3.6 M rows: {clips}. Open times exclude imports; peak RSS "
+                  "is the probe's ru_maxrss, which on Linux keeps the bench parent's resident set at fork (the "
+                  "simulated 3.6 M-row table), so these are upper bounds, not the reader's own; probes are capped "
+                  f"at {PROBE_MEMORY_LIMIT >> 30} GB of address space.", ""]
     w = report.get("work")
     if w:
         lines += [f"## Work folder per output frame (real build with default params: {w['frames']} frames of "
