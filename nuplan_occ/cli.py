@@ -104,7 +104,7 @@ def demo(
     seconds: float = typer.Option(4.0, help="Seconds of synthetic log."),
     workers: int = typer.Option(2, help="Parallel scene workers."),
 ) -> None:
-    """Synthesize a log, build it, print the summary and write a picture of one frame."""
+    """Synthesize a log, build it, print the summary, write a picture of one frame and the build report."""
     from nuplan_occ.pipeline.build import run_build
     from nuplan_occ.progress import BuildProgress, summary_table
     from nuplan_occ.synth.generate import synthesize
@@ -123,8 +123,9 @@ def demo(
 
 
 def _demo_report(out: Path) -> None:
-    """Quality of the demo build against the synthetic truth, and a picture of one frame."""
+    """Quality of the demo build against the synthetic truth, a picture of one frame and the build report."""
     from nuplan_occ.evaluate import evaluate
+    from nuplan_occ.report import write_report
     from nuplan_occ.viewer import render_frame
 
     result = evaluate(str(out / "dataset"), str(out / "data" / "truth"), json_path=out / "eval.json")
@@ -134,10 +135,12 @@ def _demo_report(out: Path) -> None:
     picture = out / "frame.png"
     render_frame(str(out / "dataset"), index=0, screenshot=picture)
     console.print(f"picture written to {picture}")
+    report = write_report(str(out / "dataset"), out / "report")
+    console.print(f"build report written to {report.index} (open it in a browser)")
 
 
 def _register_dataset_tools() -> None:
-    """view, eval, stats, validate, export."""
+    """view, eval, stats, validate, export, report."""
     from nuplan_occ.cli_dataset import register
 
     register(app)

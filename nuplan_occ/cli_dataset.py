@@ -1,4 +1,5 @@
-"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, compact. `register(app)` adds them."""
+"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, compact, report. `register(app)` adds
+them."""
 
 from __future__ import annotations
 
@@ -189,6 +190,32 @@ def compact_cmd(out: str = typer.Argument(..., help="Dataset root (path or fsspe
                   f"{result.output} ({result.rows_after:,} visible rows)", highlight=False)
 
 
+def report_cmd(
+    out: str = typer.Argument(..., help="Dataset root."),
+    report_dir: Optional[Path] = typer.Option(None, "--out", help="Report folder (default OUT/report; required "
+                                               "for a dataset at a URL)."),
+    every: int = typer.Option(10, "--every", min=1, help="A top-down thumbnail every N frames of a scene."),
+    work_dir: Optional[Path] = typer.Option(None, help="The build's work folder holding build_log.jsonl (default "
+                                            "as for build)."),
+) -> None:
+    """Static HTML report of a build (opens from disk): summary, flagged scenes and frames, per-scene pages."""
+    from rich.progress import Progress
+
+    from nuplan_occ.report import write_report
+
+    if report_dir is None and "://" in out and not out.startswith("file://"):
+        raise typer.BadParameter(f"{out} is a URL: give --out, a local folder for the report")
+    with Progress(console=err_console, transient=True) as progress:
+        task = progress.add_task("report", total=None)
+        result = write_report(out, report_dir, every=every, work_root=work_dir,
+                              progress=lambda done, total, scene: progress.update(
+                                  task, completed=done, total=total, description=scene))
+    by_rule = ", ".join(f"{name} {count}" for name, count in result.rule_frames.items() if count) or "none"
+    console.print(f"{result.scenes} scenes ({result.rendered} rendered, {result.reused} unchanged), "
+                  f"{result.flagged_frames} flagged frames ({by_rule})", highlight=False)
+    console.print(f"report written to {result.index}", highlight=False, soft_wrap=True)
+
+
 def register(app: typer.Typer) -> None:
     """Add the dataset tools to the main CLI app."""
     app.command("view")(view_cmd)
@@ -197,3 +224,6 @@ def register(app: typer.Typer) -> None:
     app.command("validate")(validate_cmd)
     app.command("export")(export_cmd)
     app.command("compact")(compact_cmd)
+
+
+    app.command("report")(report_cmd)

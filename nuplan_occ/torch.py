@@ -35,7 +35,7 @@ def _output_index(ds: OccDataset, scenes: np.ndarray) -> np.ndarray:
     derived = clips.output_index_from_frame_index(scenes, ds.frame_index)
     if not ds.has_column("output_index"):
         return derived
-    stored = ds.column("output_index").cast(pa.int64()).fill_null(-1).to_numpy()
+    stored = ds.column("output_index").cast(pa.int64()).fill_null(-1).to_numpy(zero_copy_only=False)
     return np.where(stored >= 0, stored, derived)
 
 

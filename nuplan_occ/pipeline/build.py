@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 from nuplan_occ.io.data_root import maps_root_for, resolve_logs, sensor_root_for
 from nuplan_occ.io.reader import NuplanLog
+from nuplan_occ.pipeline.build_log import BuildLog
 from nuplan_occ.pipeline.executors import execute
 from nuplan_occ.pipeline.runner import SceneResult
 from nuplan_occ.pipeline.scene import SceneTask, log_id_of
@@ -106,17 +107,21 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str |
               on_event: Callable[[tuple[str, str, str]], None] | None = None) -> BuildSummary:
     """Build the dataset at `out` from the logs under `data_root` (shard `shard_index` of `num_shards`
     of them); returns the summary. work_root: where stage outputs are cached (default: see
-    `default_work_root`); keep_work: work-folder policy (see `pipeline.publish`)."""
+    `default_work_root`); keep_work: work-folder policy (see `pipeline.publish`); each run appends its
+    scenes' stage times to the build log there (`nuplan_occ.pipeline.build_log`)."""
     started = time.perf_counter()
     logs = logs_of_shard(resolve_logs(data_root, split=split, log_names=log_names, db_paths=db_paths),
                          num_shards, shard_index)
     maps = maps_root_for(data_root, maps_root)
-    tasks = plan_tasks(logs, Path(data_root), maps, out, Path(work_root) if work_root else default_work_root(out),
-                       params, keep_work)
+    work_root = Path(work_root) if work_root else default_work_root(out)
+    tasks = plan_tasks(logs, Path(data_root), maps, out, work_root, params, keep_work)
     if on_plan:
         on_plan(tasks)
     summary = BuildSummary()
+    build_log = BuildLog(work_root)
+    by_scene = {(t.log_name, t.scene_name): t for t in tasks}
     for result in execute(tasks, executor, workers, ray_address, on_event or (lambda event: None)):
         summary.add(result)
+        build_log.scene(by_scene[(result.log_name, result.scene_name)].scene_token, result)
     summary.wall_seconds = time.perf_counter() - started
     return summary

@@ -37,15 +37,10 @@ def sweep_files(data_root: Path) -> tuple[Path, list]:
         return db, list(log.frames)
 
 
-def test_build_end_to_end_default_method_with_bad_blobs(data_root, tmp_path):
+def test_build_end_to_end_default_method_with_bad_blobs(bad_blobs_build):
+    data_root, out, summary = bad_blobs_build.data_root, bad_blobs_build.out, bad_blobs_build.summary
+    corrupt, missing = bad_blobs_build.corrupt, bad_blobs_build.missing
     db, frames = sweep_files(data_root)
-    blobs = data_root / "nuplan-v1.1" / "sensor_blobs"
-    corrupt, missing = frames[2], frames[4]
-    (blobs / corrupt.filename).write_bytes(b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"
-                                           b"COUNT 1 1 1\nWIDTH 99\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 99\nDATA binary\n\x00\x01")
-    (blobs / missing.filename).unlink()
-    out = tmp_path / "out"
-    summary = run_build(data_root, str(out), build_params(fast=False))
 
     manifest = read_manifest(str(out)).to_pylist()
     assert [r["token"] for r in manifest] == [f.token for f in frames if f.index % 2 == 0]
