@@ -39,16 +39,27 @@ def build(
     set_option: List[str] = typer.Option([], "--set", help="STAGE.PARAM=VALUE override; repeatable."),
     strict: bool = typer.Option(False, help="Exit non-zero if any frame failed."),
     work_dir: Optional[Path] = typer.Option(None, help="Stage cache (default OUT/work, or a local cache folder for URLs)."),
+    num_shards: int = typer.Option(1, help="Split the logs into this many build shards (by log name hash)..."),
+    shard_index: int = typer.Option(0, help="...and build only this one (0-based; e.g. $SLURM_ARRAY_TASK_ID)."),
+    keep_work: str = typer.Option("default", help="Stage cache kept after a scene is published: all, default "
+                                  "(poses, boxes, surfaces, rows) or none."),
 ) -> None:
-    """Build the occupancy dataset; rerunning skips finished work."""
+    """Build the occupancy dataset; rerunning skips finished work. Any number of builds may write into
+    one OUT at once (other machines, other shards, the same logs)."""
     from nuplan_occ.pipeline.build import run_build
+    from nuplan_occ.pipeline.publish import KEEP_WORK
     from nuplan_occ.progress import BuildProgress, summary_table
 
     params = _build_params(config, set_option, rate_hz)
+    if keep_work not in KEEP_WORK or num_shards < 1 or not 0 <= shard_index < num_shards:
+        console.print(f"error: need --keep-work in {KEEP_WORK} and 0 <= --shard-index < --num-shards "
+                      f"(got {keep_work!r}, {shard_index}, {num_shards})", highlight=False)
+        raise typer.Exit(code=2)
     with BuildProgress(console) as progress:
         summary = run_build(data_root, out, params, split=split or None, log_names=log or None,
                             maps_root=str(maps_root) if maps_root else None, workers=workers, executor=executor,
-                            ray_address=ray_address, work_root=work_dir, on_plan=progress.on_plan,
+                            ray_address=ray_address, work_root=work_dir, num_shards=num_shards,
+                            shard_index=shard_index, keep_work=keep_work, on_plan=progress.on_plan,
                             on_event=progress.on_event)
     console.print(summary_table(summary))
     if summary.frames_built == 0 or (strict and summary.frames_failed):

@@ -1,4 +1,5 @@
-"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, report. `register(app)` adds them."""
+"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, compact, report. `register(app)` adds
+them."""
 
 from __future__ import annotations
 
@@ -174,6 +175,21 @@ def export_cmd(
         err_console.print(f"frames without a mask member (key omitted in their files): {json.dumps(missing)}")
 
 
+def compact_cmd(out: str = typer.Argument(..., help="Dataset root (path or fsspec URL).")) -> None:
+    """Fold the manifest's fragments into one large file, dropping superseded rows (readers see the same
+    rows; safe while builds run; run one compaction at a time)."""
+    from nuplan_occ.storage.compact import compact
+    from nuplan_occ.storage.errors import StorageError
+
+    try:
+        result = compact(out)
+    except StorageError as exc:
+        err_console.print(f"error: {exc}", highlight=False)
+        raise typer.Exit(code=1) from None
+    console.print(f"{out}: {result.files_before} manifest file(s), {result.rows_before:,} rows -> "
+                  f"{result.output} ({result.rows_after:,} visible rows)", highlight=False)
+
+
 def report_cmd(
     out: str = typer.Argument(..., help="Dataset root."),
     report_dir: Optional[Path] = typer.Option(None, "--out", help="Report folder (default OUT/report; required "
@@ -207,4 +223,7 @@ def register(app: typer.Typer) -> None:
     app.command("stats")(stats_cmd)
     app.command("validate")(validate_cmd)
     app.command("export")(export_cmd)
+    app.command("compact")(compact_cmd)
+
+
     app.command("report")(report_cmd)

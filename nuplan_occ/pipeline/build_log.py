@@ -53,7 +53,7 @@ class BuildLog:
     def scene(self, scene_token: str, result) -> None:
         """Record one finished scene (a `SceneResult` whose rows are final)."""
         self._append({"kind": "scene", "run": self.run, "log": result.log_name, "scene": result.scene_name,
-                      "scene_token": scene_token, "frames": len(result.rows),
+                      "scene_token": scene_token, "frames": result.frames_built + result.frames_failed,
                       "stage_seconds": {k: round(v, 4) for k, v in result.stage_seconds.items()},
                       "error": result.error, "peak_rss_mb": round(result.peak_rss_mb, 1)})
 
