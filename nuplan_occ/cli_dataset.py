@@ -190,10 +190,25 @@ def validate_cmd(out: str = typer.Argument(..., help="Dataset root.")) -> None:
 def export_cmd(
     out: str = typer.Argument(..., help="Dataset root."),
     dest: Path = typer.Argument(..., help="Destination folder (local)."),
-    format: str = typer.Option(..., "--format", help="occ3d (<log>/<token>/labels.npz, free = 17) or uniscene "
-                               "(nuplan_quantized_X_Y_Z/<token>.npy)."),
+    format: str = typer.Option(..., "--format", help="occ3d (<log>/<token>/labels.npz, free = 17), uniscene "
+                               "(nuplan_quantized_X_Y_Z/<token>.npy) or mesh (<log>/<scene>.glb and .ply)."),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", envvar="NUPLAN_DATA_ROOT",
+                                             help="mesh: the nuPlan data root the dataset was built from."),
+    token: Optional[str] = typer.Option(None, "--token", help="mesh: only this frame's scene, objects placed "
+                                        "at this frame (default: every scene, at its first frame)."),
 ) -> None:
-    """Write the ok frames as Occ3D-style labels.npz or UniScenev2-style dense .npy files."""
+    """Write the ok frames as Occ3D-style labels.npz or UniScenev2-style dense .npy files, or each scene's
+    reconstructed background and object surfaces as meshes (GLB for Blender, PLY for MeshLab)."""
+    if format == "mesh":
+        from nuplan_occ.mesh_export import export_meshes
+
+        if data_root is None:
+            raise typer.BadParameter("--format mesh needs --data-root (or NUPLAN_DATA_ROOT)")
+        summary = export_meshes(out, dest, data_root, token=token)
+        meshes = sum(len(s["meshes"]) for s in summary["scenes"])
+        console.print(f"{meshes} meshes of {len(summary['scenes'])} scenes exported to {dest} (scene frame); "
+                      f"list in {dest / 'mesh_export.json'}")
+        return
     from nuplan_occ.export import export_dataset
 
     summary = export_dataset(out, dest, format)
