@@ -8,6 +8,7 @@ import json
 import numpy as np
 import trimesh
 
+from nuplan_occ.dataset import open_dataset
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.labels import LABELS
 from nuplan_occ.mesh_export import SURFACE_ARTIFACTS, _scene_tasks, box_to_frame, export_meshes
@@ -18,10 +19,13 @@ from stages import PIPELINE
 def test_mesh_export_holds_the_cached_surfaces(workspace, tmp_path):
     folder, env = workspace
     out, data_root = str(folder / "out"), env["NUPLAN_DATA_ROOT"]
-    summary = export_meshes(out, tmp_path, data_root)
+    ds = open_dataset(out)
+    frame = ds.get(len(ds) - 1, keys=())  # a scene's last frame: objects placed away from its first
+    summary = export_meshes(out, tmp_path, data_root, token=frame["token"])
     assert json.loads((tmp_path / "mesh_export.json").read_text()) == summary
     tasks = {t.scene_name: t for t in _scene_tasks(out, data_root, None)}
-    assert len(summary["scenes"]) == len(tasks) > 0
+    assert [(tasks[s["scene"]].scene_token, s["token"]) for s in summary["scenes"]] == [
+        (frame["scene_token"], frame["token"])]
     objects_checked = 0
     for entry in summary["scenes"]:
         artifacts = run_stages(tasks[entry["scene"]], PIPELINE, SURFACE_ARTIFACTS)
