@@ -63,7 +63,7 @@ def synth(
     logs: int = typer.Option(1, help="Number of logs."),
     seconds: float = typer.Option(10.0, help="Seconds per log."),
     seed: int = typer.Option(0, help="Random seed (same seed, same bytes)."),
-    preset: str = typer.Option("small", help="small | city"),
+    preset: str = typer.Option("small", help="small | city | small_objects"),
     preview: Optional[Path] = typer.Option(None, help="Write a PNG of one sweep over the truth grid."),
 ) -> None:
     """Write synthetic nuPlan logs from procedural worlds, with exact occupancy truth."""

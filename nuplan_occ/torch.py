@@ -1,6 +1,7 @@
 """PyTorch view of a dataset: `OccupancyDataset` yields clips of consecutive frames of one scene.
 
-Item of a clip of T frames (T = clip_len):
+A clip is T = clip_len ok frames of one scene with consecutive `output_index` (the build's rate: 0.1 s
+steps at 10 Hz); a failed or missing frame breaks the run. Item of a clip:
     <key> for key in `keys`: tensor [T, X, Y, Z] (flow [T, X, Y, Z, 3]), dtype as stored
           (semantics uint8, masks bool, instance uint16, flow float16 m/s), each frame in its own ego frame;
     poses: float64 [T, 4, 4], T_first_from_t = inv(ego_to_global[0]) @ ego_to_global[t], i.e. frame t's
@@ -29,8 +30,18 @@ def _speeds(ds: OccDataset, name: str) -> np.ndarray:
     return ds.manifest[name].cast(pa.float64()).fill_null(np.nan).to_numpy()
 
 
+def _output_index(ds: OccDataset, scenes: np.ndarray) -> np.ndarray:
+    """The manifest's output_index; derived from frame_index for scenes written without it."""
+    derived = clips.output_index_from_frame_index(scenes, ds.manifest["frame_index"].to_numpy())
+    if "output_index" not in ds.manifest.column_names:
+        return derived
+    stored = ds.manifest["output_index"].cast(pa.int64()).fill_null(-1).to_numpy()
+    return np.where(stored >= 0, stored, derived)
+
+
 class OccupancyDataset(torch.utils.data.Dataset):
-    """Clips of `clip_len` consecutive frames of one scene, starts `stride` frames apart within a run.
+    """Clips of `clip_len` consecutive output frames of one scene (consecutive `output_index`), starts
+    `stride` frames apart within a run.
 
     subset: None (all clips), "spatial" (ego_speed > theta_e) or "temporal" (ego_speed < theta_e and
     max_agent_speed > theta_o), speeds in m/s from the manifest; a clip is in a subset iff all its
@@ -50,7 +61,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
         self.ds = OccDataset(path)
         self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
         scenes = self.ds.manifest["scene_token"].combine_chunks().dictionary_encode().indices.to_numpy()
-        frames = self.ds.manifest["frame_index"].to_numpy()
+        frames = _output_index(self.ds, scenes)
         self._order = clips.clip_order(scenes, frames)
         starts = clips.clip_starts(scenes, frames, self._order, clip_len, stride)
         if subset is not None:

@@ -1,12 +1,15 @@
 """VAE / DiT benchmarks on a dataset (by default a synthetic one), and the loss-curve PNG.
 
-`run_vae_bench(data_root, steps, config)`: trains the config's VAE on the first 3/4 of the clips and
-reports reconstruction IoU / mIoU (OccWorld definitions, see `occgen.metrics`) of the argmax decoding of
-the encoder mean on the held-out last 1/4, the loss curve and the compression ratio.
+`run_vae_bench(data_root, steps, config, clip_len=T)`: trains the config's VAE on clips of T frames that
+lie outside the held-out scenes (the last whole scenes within a quarter of the frames) and reports
+reconstruction IoU / mIoU (OccWorld definitions, see `occgen.metrics`) of the argmax decoding of the
+encoder mean on the held-out scenes (each frame decoded within a clip of T of their frames, so different
+T score the same frames), the loss curve and the compression ratio.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +17,7 @@ import torch
 
 from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import GridSpec
+from nuplan_occ.torch import OccupancyDataset
 from occgen.configs import compression_ratio, get_config
 from occgen.data import load_clip, open_clips, semantics_batches
 from occgen.export import GeneratedScene, translation, write_scenes
@@ -38,42 +42,70 @@ def make_synthetic_dataset(root: str, scenes: int = 4, frames: int = 8, grid: Gr
     return root
 
 
-def split(n: int) -> tuple[list[int], list[int]]:
-    """(train, held-out) clip indices: the last quarter (at least one clip) is held out."""
-    if n < 2:
-        raise ValueError(f"need at least 2 clips for a train / held-out split, got {n}")
-    cut = n - max(n // 4, 1)
-    return list(range(cut)), list(range(cut, n))
+def held_out_split(data_root: str, dataset: OccupancyDataset) -> tuple[list[int], list[tuple[int, list[int]]], int]:
+    """Hold out the last whole scenes (clip order: scene, output_index) that fit in a quarter of the frames
+    (at least one scene; at least one stays for training), whatever the clip length.
+
+    Returns (training clips: the clips of `dataset` in the other scenes; evaluation plan: (clip, positions in
+    the clip) pairs of held-out clips that score each held-out frame once; number of held-out frames). A
+    held-out frame in a run shorter than the clip length is in no plan entry."""
+    frames = OccupancyDataset(data_root, clip_len=1)
+    rows = [int(frames.frame_indices(i)[0]) for i in range(len(frames))]
+    scene_of = frames.ds.manifest["scene_token"].to_pylist()
+    scenes = list(dict.fromkeys(scene_of[r] for r in rows))
+    if len(scenes) < 2:
+        raise ValueError(f"{data_root}: need at least 2 scenes for a train / held-out split, got {len(scenes)}")
+    size = {s: sum(scene_of[r] == s for r in rows) for s in scenes}
+    held_scenes = {scenes[-1]}
+    for scene in reversed(scenes[1:-1]):
+        if sum(size[s] for s in held_scenes) + size[scene] > len(rows) / 4:
+            break
+        held_scenes.add(scene)
+    held = {r for r in rows if scene_of[r] in held_scenes}
+    train, plan, scored = [], [], set()
+    for i in range(len(dataset)):
+        clip = [int(r) for r in dataset.frame_indices(i)]
+        if not held.intersection(clip):
+            train.append(i)
+        elif not scored.issuperset(clip):
+            plan.append((i, [t for t, r in enumerate(clip) if r not in scored]))
+            scored.update(clip)
+    return train, plan, len(held)
 
 
 @torch.no_grad()
-def evaluate_vae(vae: OccVAE, dataset, indices: list[int], crop: int | None) -> dict:
-    """IoU / mIoU of argmax(decode(encoder mean)) against the centred crops of clips `indices`."""
+def evaluate_vae(vae: OccVAE, dataset: OccupancyDataset, plan: list[tuple[int, list[int]]], crop: int | None) -> dict:
+    """IoU / mIoU of argmax(decode(encoder mean)) of whole clips against their centred crops, scored on the
+    frames `plan` names ((clip, positions) pairs, see `held_out_split`)."""
     meter = OccupancyIoU()
-    for index in indices:
+    for index, positions in plan:
         sem = load_clip(dataset, index, crop)[0][None]
-        meter.update(vae.decode(vae.encode(sem)[0]), sem)
+        meter.update(vae.decode(vae.encode(sem)[0])[:, positions], sem[:, positions])
     return meter.compute()
 
 
 def run_vae_bench(data_root: str, steps: int, config: str = "tiny", crop: int | None = None, seed: int = 0,
-                  on_step: StepCallback | None = None) -> dict:
-    """Train and evaluate a VAE; dict of iou, miou, per_class, losses (total per step), loss_terms,
-    compression_ratio (H*W*D / h*w*C), latent_shape (C, h, w), config, steps, frames_train/held_out."""
+                  on_step: StepCallback | None = None, clip_len: int | None = None) -> dict:
+    """Train and evaluate a VAE on clips of `clip_len` frames (default: the config's); dict of iou, miou,
+    per_class, losses (total per step), loss_terms, compression_ratio (H*W*D / h*w*C), latent_shape
+    (C, h, w), config, clip_len, steps, clips_train, frames_held_out, frames_scored."""
     cfg = get_config(config)
+    if clip_len is not None:
+        cfg = replace(cfg, clip_len=clip_len)
     dataset = open_clips(data_root, clip_len=clip_len_for(cfg, "vae"))
     depth = open_dataset(data_root).grid.shape[2]
-    train_idx, eval_idx = split(len(dataset))
+    train_idx, plan, held_out = held_out_split(data_root, dataset)
     batches = semantics_batches(dataset, cfg.batch_size, crop, torch.Generator().manual_seed(seed), train_idx)
     vae, history = train_vae(batches, cfg, depth, steps, seed, on_step)
-    metrics = evaluate_vae(vae, dataset, eval_idx, crop)
+    metrics = evaluate_vae(vae, dataset, plan, crop)
     size = crop or min(open_dataset(data_root).grid.shape[:2])
     d = cfg.vae.downsample
     return {
-        "config": config, "steps": steps, **metrics,
+        "config": config, "clip_len": cfg.clip_len, "steps": steps, **metrics,
         "compression_ratio": compression_ratio(cfg.vae, depth),
         "latent_shape": [cfg.vae.latent_channels, size // d, size // d],
-        "clips_train": len(train_idx), "clips_held_out": len(eval_idx),
+        "clips_train": len(train_idx), "frames_held_out": held_out,
+        "frames_scored": sum(len(positions) for _, positions in plan),
         "losses": [h["total"] for h in history], "loss_terms": history,
     }
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -38,6 +39,8 @@ def train(
     subset: Optional[str] = typer.Option(None, help="Dataset subset: spatial or temporal (manifest speeds)."),
     seed: int = typer.Option(0),
     threads: int = typer.Option(0, help="torch threads (0: torch default)."),
+    clip_len: Optional[int] = typer.Option(None, min=1, help="vae: frames per training clip (consecutive output "
+                                           "frames; default: the config's, 1). A DiT's clip follows its task."),
 ) -> None:
     """Train the VAE, or a DiT on the VAE already in --out."""
     from occgen import checkpoint
@@ -47,9 +50,13 @@ def train(
 
     if what not in ("vae", "dit"):
         raise typer.BadParameter(f"{what!r}: train vae or dit")
+    if clip_len is not None and what != "vae":
+        raise typer.BadParameter("--clip-len is for the VAE; a DiT's clip length follows its task and config")
     if threads:
         torch.set_num_threads(threads)
     cfg = get_config(config)
+    if clip_len is not None:
+        cfg = replace(cfg, clip_len=clip_len)
     clips = open_clips(str(data), clip_len_for(cfg, "vae" if what == "vae" else task), subset)
     batches = semantics_batches(clips, cfg.batch_size, crop or None, torch.Generator().manual_seed(seed))
     with _progress() as progress:
@@ -62,7 +69,8 @@ def train(
             depth = open_dataset(str(data)).grid.shape[2]
             vae, history = train_vae(batches, cfg, depth, steps, seed, on_step)
             checkpoint.save(out / checkpoint.VAE_FILE, vae,
-                            {"config": config, "depth": depth, "class_ids": list(CLASS_IDS)})
+                            {"config": config, "depth": depth, "class_ids": list(CLASS_IDS),
+                             "clip_len": cfg.clip_len})
             losses = [h["total"] for h in history]
         else:
             vae = checkpoint.load_vae(out)
@@ -111,25 +119,30 @@ def bench(
     steps: int = typer.Option(200, min=1),
     config: list[str] = typer.Option(["tiny", "tiny512"], help="Configs to compare."),
     crop: Optional[int] = typer.Option(None, help="x/y crop in cells (default: full grid)."),
+    clip_len: list[int] = typer.Option([], help="Clip lengths T to compare (default: each config's own); "
+                                       "results are then named <config>@T<T>."),
+    seed: int = typer.Option(0),
 ) -> None:
-    """VAE reconstruction bench: IoU / mIoU, loss curves, compression ratios."""
+    """VAE reconstruction bench: IoU / mIoU on held-out frames, loss curves, compression ratios."""
     from occgen.bench import make_synthetic_dataset, run_vae_bench, write_curve_png
 
     root = str(data) if data is not None else make_synthetic_dataset(str(out / "synthetic"))
+    runs = [(name, None, name) for name in config] if not clip_len else [
+        (name, t, f"{name}@T{t}") for name in config for t in clip_len]
     results = {}
     with _progress() as progress:
-        for name in config:
-            bar = progress.add_task(f"vae {name}", total=steps, info="")
-            results[name] = run_vae_bench(root, steps, name, crop,
-                                          on_step=lambda s, r, b=bar: progress.update(b, completed=s,
-                                                                                     info=f"loss {r['total']:.3f}"))
+        for name, t, label in runs:
+            bar = progress.add_task(f"vae {label}", total=steps, info="")
+            results[label] = run_vae_bench(root, steps, name, crop, seed, clip_len=t,
+                                           on_step=lambda s, r, b=bar: progress.update(b, completed=s,
+                                                                                      info=f"loss {r['total']:.3f}"))
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.json").write_text(json.dumps(results, indent=1))
     write_curve_png({f"{k} (ratio {v['compression_ratio']:g})": v["losses"] for k, v in results.items()},
                     out / "vae_loss.png", "occgen VAE training loss (CE + Lovasz + KL)")
-    for name, r in results.items():
-        console.print(f"{name}: ratio {r['compression_ratio']:g}, IoU {r['iou']:.3f}, mIoU {r['miou']:.3f}, "
-                      f"loss {r['losses'][0]:.3f} -> {r['losses'][-1]:.3f}")
+    for label, r in results.items():
+        console.print(f"{label}: ratio {r['compression_ratio']:g}, IoU {r['iou']:.3f}, mIoU {r['miou']:.3f} "
+                      f"on {r['frames_scored']} held-out frames, loss {r['losses'][0]:.3f} -> {r['losses'][-1]:.3f}")
 
 
 def _register_part2() -> None:

@@ -15,7 +15,7 @@ from nuplan_occ.io.maps import find_map
 from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.io.types import LidarFrame
 from nuplan_occ.io.errors import MapError
-from nuplan_occ.pipeline.scene import SceneData, Sweep
+from nuplan_occ.pipeline.scene import SceneData, Sweep, output_slots
 from nuplan_occ.pipeline.stage import Stage
 
 
@@ -48,12 +48,11 @@ def context_frames(log_frames: list[LidarFrame], own: list[LidarFrame], seconds:
 
 def run(inputs: dict, params: LoadParams) -> dict:
     task = inputs["task"]
-    step = max(1, int(round(params.sweep_rate_hz / params.rate_hz)))
     with NuplanLog(task.db_path, task.sensor_root) as log:
         T_ego_from_lidar = log.lidar.T_ego_from_lidar
         sweeps = []
         own = log.frames_of_scene(task.scene_token)
-        mine = {frame.token for frame in own}
+        slots = output_slots(own, params.rate_hz, params.sweep_rate_hz)
         for frame in context_frames(log.frames, own, params.context_seconds, params.context_stride):
             pose = log.frame_pose(frame)
             boxes_global = log.boxes(frame, "global")
@@ -64,7 +63,7 @@ def run(inputs: dict, params: LoadParams) -> dict:
             except NuplanFormatError as exc:
                 failure = str(exc)
             sweeps.append(Sweep(frame.token, frame.index, frame.timestamp_us, pose, cloud, boxes_ego,
-                                boxes_global, frame.token in mine and frame.index % step == 0, failure))
+                                boxes_global, frame.token in slots, failure, slots.get(frame.token, -1)))
         try:
             map_path = str(find_map(Path(task.maps_root), log.meta.map_name))
         except MapError:

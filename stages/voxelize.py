@@ -70,7 +70,8 @@ def placed_objects(scene, boxes: Boxes, ok_position: int, objects: dict, surface
                    sparse_solid_categories: tuple[str, ...] = (), solid_min_cells: int = 1) -> list[PlacedObject]:
     """The sweep's boxes (in its ego frame) with their object geometry in the box frame: a box lattice
     for box_fill_categories, else solid cell points (for sparse_solid_categories a voxel needs
-    solid_min_cells of them or an observed one), else surface, else points."""
+    solid_min_cells of them or an observed one), else surface, else points; each with the object's own
+    points, which replace a geometry that covers fewer voxels (`PlacedObject.own_points`)."""
     placed = []
     for k, track in enumerate(boxes.track_tokens):
         min_points, anchors = 1, None
@@ -87,10 +88,11 @@ def placed_objects(scene, boxes: Boxes, ok_position: int, objects: dict, surface
             faces = np.zeros((0, 3), dtype=np.int64)
         else:
             continue
+        own = objects[track].points_for_frame(ok_position, window)[0] if track in objects else None
         placed.append(PlacedObject(
             vertices=vertices, faces=faces, center=boxes.centers[k], yaw=float(boxes.yaws[k]), size=boxes.sizes[k],
             class_id=LABELS.box_category_to_id[boxes.categories[k]], instance_id=scene.instance_ids.get(track, 0),
-            velocity=boxes.velocities[k], min_points_per_voxel=min_points, anchors=anchors))
+            velocity=boxes.velocities[k], min_points_per_voxel=min_points, anchors=anchors, own_points=own))
     return placed
 
 

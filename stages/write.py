@@ -3,9 +3,10 @@ atomically, and the scene's manifest rows (identity, pose, filter columns, QA fi
 whose sweep failed get a row with status "failed" and the reason. The runner commits the rows.
 
 Inputs: `scene`, `registration`, `grids`, `final_semantics`, `masks`, `free_cleared`, `outliers_removed`,
-`map_status`, `map_alignment`. Outputs: `rows` (manifest rows of the scene). A row's `ego_to_global` is the
-refined pose corrected by the scene's map alignment: the pose the frame's labels were rasterized with, so
-the map drawn with it lands where the grid says.
+`map_status`, `map_alignment`, `object_boxes`, `object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`).
+Outputs: `rows` (manifest rows of the scene). A row's `ego_to_global` is the refined pose corrected by the
+scene's map alignment: the pose the frame's labels were rasterized with, so the map drawn with it lands
+where the grid says.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from nuplan_occ.geometry import invert_transform
 from nuplan_occ.pipeline.frame_columns import agent_speed_columns, ego_speeds, point_coverage
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.storage import DatasetWriter, FrameRecord
+from nuplan_occ.voxel.box_labels import box_label_columns
 from nuplan_occ.voxel.map_align import MapAlignment
 
 
@@ -30,10 +32,12 @@ class WriteParams:
 
 def frame_columns(scene, position: int, registration, speeds, outliers: int, map_status: str,
                   alignment: MapAlignment | None) -> dict:
-    """Filter columns and QA figures of one frame (qa_map_*: the scene's map alignment, NaN without)."""
+    """output_index (see `nuplan_occ.storage.clips`), filter columns and QA figures of one frame (qa_map_*: the
+    scene's map alignment, NaN without)."""
     sweep = scene.sweeps[position]
     correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
     columns = {
+        "output_index": int(sweep.output_index),
         "ego_speed": float(speeds[position]),
         **agent_speed_columns(sweep.boxes_global),
         "qa_pose_correction_m": float(np.linalg.norm(correction[:3, 3])),
@@ -82,6 +86,8 @@ def run(inputs: dict, params: WriteParams) -> dict:
         columns["qa_point_coverage"] = point_coverage(sweep.cloud.xyz, semantics > 0)
         columns["qa_occupied_voxels"] = int((semantics > 0).sum())
         columns["qa_free_space_cleared"] = int(inputs["free_cleared"].get(sweep.token, 0))
+        columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
+                                         scene.instance_ids, semantics, grids.instance))
         if "mask_lidar" in arrays:
             columns["qa_lidar_observed_fraction"] = float(arrays["mask_lidar"].mean())
         records.append(record)
@@ -90,5 +96,6 @@ def run(inputs: dict, params: WriteParams) -> dict:
 
 
 STAGE = Stage("write", inputs=("scene", "registration", "grids", "final_semantics", "masks", "free_cleared",
-                                "outliers_removed", "map_status", "map_alignment"),
-              outputs=("rows",), params_type=WriteParams, run=run, code=("nuplan_occ.storage",), doc=__doc__ or "")
+                                "outliers_removed", "map_status", "map_alignment", "object_boxes", "object_points"),
+              outputs=("rows",), params_type=WriteParams, run=run,
+              code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "")

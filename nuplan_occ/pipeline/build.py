@@ -20,7 +20,7 @@ from nuplan_occ.io.data_root import maps_root_for, resolve_logs, sensor_root_for
 from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.pipeline.executors import execute
 from nuplan_occ.pipeline.runner import SceneResult
-from nuplan_occ.pipeline.scene import SceneTask, log_id_of
+from nuplan_occ.pipeline.scene import SceneTask, log_id_of, output_slots
 from nuplan_occ.storage import DatasetWriter, FrameRecord
 
 
@@ -96,14 +96,16 @@ def plan_tasks(db_paths: list[Path], data_root: Path, maps_root: Path, out: str,
     return tasks
 
 
-def failed_scene_rows(task: SceneTask, reason: str, rate_step: int) -> list[dict]:
+def failed_scene_rows(task: SceneTask, reason: str, rate_hz: float, sweep_rate_hz: float) -> list[dict]:
     """Publish failure rows for every output frame of a scene that could not be built at all."""
     with NuplanLog(task.db_path, task.sensor_root) as log:
-        frames = [f for f in log.frames_of_scene(task.scene_token) if f.index % rate_step == 0]
+        own = log.frames_of_scene(task.scene_token)
+        slots = output_slots(own, rate_hz, sweep_rate_hz)
         records = [FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
                                scene_name=task.scene_name, frame_index=f.index, token=f.token,
                                timestamp_us=f.timestamp_us, ego_to_global=log.frame_pose(f), arrays={},
-                               columns={}, status="failed", failure_reason=reason) for f in frames]
+                               columns={"output_index": slots[f.token]}, status="failed", failure_reason=reason)
+                   for f in own if f.token in slots]
     return DatasetWriter(task.out_root, metadata={"params": {}}).write_shard(task.shard_key, records)
 
 
@@ -131,11 +133,11 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str |
     summary = BuildSummary()
     pending_rows: list[dict] = []
     last_commit = time.monotonic()
-    rate_step = max(1, round(params["load"].sweep_rate_hz / params["load"].rate_hz))
     by_scene = {(t.log_name, t.scene_name): t for t in tasks}
     for result in execute(tasks, executor, workers, ray_address, on_event or (lambda event: None)):
         if result.error:
-            result.rows = failed_scene_rows(by_scene[(result.log_name, result.scene_name)], result.error, rate_step)
+            result.rows = failed_scene_rows(by_scene[(result.log_name, result.scene_name)], result.error,
+                                            params["load"].rate_hz, params["load"].sweep_rate_hz)
         summary.add(result)
         pending_rows.extend(result.rows)
         if time.monotonic() - last_commit >= commit_every_s:

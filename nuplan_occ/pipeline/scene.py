@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nuplan_occ.io.types import Boxes, CameraCalibration, LogMeta, PointCloud
+from nuplan_occ.io.types import Boxes, CameraCalibration, LidarFrame, LogMeta, PointCloud
+from nuplan_occ.storage.clips import output_index_from_timestamps
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,18 @@ class SceneTask:
         return f"{self.log_name}/{self.scene_name}"
 
 
+def output_slots(own: list[LidarFrame], rate_hz: float, sweep_rate_hz: float) -> dict[str, int]:
+    """token -> output index of a scene's output frames: its frames `own` (time order) whose log index is
+    a multiple of step = round(sweep_rate_hz / rate_hz), numbered by
+    `nuplan_occ.storage.clips.output_index_from_timestamps` (period step sweeps, tolerance half a sweep)."""
+    step = max(1, int(round(sweep_rate_hz / rate_hz)))
+    outputs = [frame for frame in own if frame.index % step == 0]
+    sweep_period_us = 1e6 / sweep_rate_hz
+    slots = output_index_from_timestamps(np.array([f.timestamp_us for f in outputs], dtype=np.int64),
+                                         step * sweep_period_us, 0.5 * sweep_period_us)
+    return {frame.token: int(slot) for frame, slot in zip(outputs, slots)}
+
+
 def log_id_of(log_name: str) -> int:
     """Stable integer id of a log (first 8 bytes of sha256 of its name, as a non-negative int64)."""
     return int.from_bytes(hashlib.sha256(log_name.encode()).digest()[:8], "big") >> 1
@@ -67,6 +80,8 @@ class Sweep:
     cloud: points in the EGO frame of this sweep (None when the sweep failed to load: see failure).
     boxes: the sweep's boxes in its ego frame (logged pose); boxes_global as stored.
     is_output: True for the sweeps written to the dataset (the output rate, e.g. every other sweep).
+    output_index: an output sweep's index among its scene's output frames (the manifest's `output_index`,
+    see `nuplan_occ.storage.clips`); -1 for the other sweeps.
     """
 
     token: str
@@ -78,6 +93,7 @@ class Sweep:
     boxes_global: Boxes
     is_output: bool
     failure: str = ""
+    output_index: int = -1
 
 
 @dataclass

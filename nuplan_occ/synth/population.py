@@ -168,30 +168,22 @@ def _parked(net: RoadNetwork, preset: Preset, rng: np.random.Generator, accept) 
         accept(Agent(0, "vehicle", _vehicle_size(rng), pose=(float(x), float(y), float(yaw + rng.normal(0, 0.03)))))
 
 
-_STATIC_KINDS = {
-    "traffic_cone": (np.array([0.4, 0.4, 0.7]), 0.5),
-    "barrier": (np.array([2.0, 0.5, 1.0]), 5.0),
-    "czone_sign": (np.array([0.8, 0.25, 1.6]), 1.2),
-    "generic_object": (np.array([0.6, 0.6, 1.05]), 3.4),
-}
-
-
 def _static_objects(net: RoadNetwork, scenery: Scenery, preset: Preset, ego: EgoRoute, rng: np.random.Generator, accept) -> None:
     lay = net.layout
     route = ego.path.xy[:: max(1, len(ego.path.xy) // 200)]
-    kinds = list(_STATIC_KINDS)
-    candidates = {}
-    for category, (size, inset) in _STATIC_KINDS.items():
-        pts, head = frontage(net, lay.half_width + inset, 3.0, rng, jitter=1.0, clearance=1.0)
-        near = np.min(np.linalg.norm(pts[:, None] - route[None], axis=2), axis=1) < 45.0
-        candidates[category] = (pts[near], head[near])
+    kinds = preset.static_kinds
+    candidates = []
+    for kind in kinds:
+        pts, head = frontage(net, lay.half_width + kind.inset, 3.0, rng, jitter=1.0, clearance=1.0)
+        near = np.min(np.linalg.norm(pts[:, None] - route[None], axis=2), axis=1) < preset.static_route_distance_m
+        candidates.append((pts[near], head[near]))
     placed = 0
     for _ in range(preset.n_static_objects * 4):
         if placed >= preset.n_static_objects:
             break
-        category = kinds[placed % len(kinds)]
-        size, _ = _STATIC_KINDS[category]
-        pts, head = candidates[category]
+        kind = kinds[placed % len(kinds)]
+        size = np.array(kind.size)
+        pts, head = candidates[placed % len(kinds)]
         if not len(pts):
             continue
         k = int(rng.integers(len(pts)))
@@ -199,5 +191,5 @@ def _static_objects(net: RoadNetwork, scenery: Scenery, preset: Preset, ego: Ego
         if shapely.intersects(scenery.keepout, shapely.Point(p).buffer(_radius(size))):
             continue
         ground = lay.curb_height if on_walkway(net, p)[0] else 0.0
-        placed += accept(Agent(0, category, size, pose=(float(p[0]), float(p[1]), float(head[k] + rng.normal(0, 0.2))),
+        placed += accept(Agent(0, kind.category, size, pose=(float(p[0]), float(p[1]), float(head[k] + rng.normal(0, 0.2))),
                                ground=ground))

@@ -42,8 +42,36 @@ class SynthOptions:
 
 
 @dataclass(frozen=True)
+class StaticKind:
+    """A kind of static boxed object: nuPlan box category, box size [length, width, height] m, and inset m:
+    how far beyond the curb (towards the walkway) it stands."""
+
+    category: str
+    size: tuple[float, float, float]
+    inset: float
+
+
+DEFAULT_STATIC_KINDS = (
+    StaticKind("traffic_cone", (0.4, 0.4, 0.7), 0.5),
+    StaticKind("barrier", (2.0, 0.5, 1.0), 5.0),
+    StaticKind("czone_sign", (0.8, 0.25, 1.6), 1.2),
+    StaticKind("generic_object", (0.6, 0.6, 1.05), 3.4),
+)
+
+SMALL_OBJECT_KINDS = (
+    StaticKind("traffic_cone", (0.4, 0.4, 0.7), 0.5),      # cone at the road edge
+    StaticKind("traffic_cone", (0.3, 0.3, 0.5), 0.3),      # small cone
+    StaticKind("barrier", (0.2, 0.2, 0.9), 0.4),           # bollard
+    StaticKind("generic_object", (0.25, 0.25, 1.2), 0.6),  # post
+    StaticKind("generic_object", (0.5, 0.5, 0.6), 0.8),    # small box
+)
+"""Objects near a voxel in size (0.2 - 0.5 m footprints), placed close to the road."""
+
+
+@dataclass(frozen=True)
 class Preset:
-    """World size and sensor density. Azimuth counts are per full 360 degrees of each LiDAR."""
+    """World size and sensor density. Azimuth counts are per full 360 degrees of each LiDAR.
+    static_kinds: the static boxed objects, placed in turn within static_route_distance_m of the ego route."""
 
     name: str
     layout: RoadLayout
@@ -58,6 +86,8 @@ class Preset:
     n_buildings: int
     tree_spacing: float
     pole_spacing: float
+    static_kinds: tuple[StaticKind, ...] = DEFAULT_STATIC_KINDS
+    static_route_distance_m: float = 45.0
 
 
 PRESETS: dict[str, Preset] = {
@@ -69,6 +99,10 @@ PRESETS: dict[str, Preset] = {
                    scene_seconds=20.0, top_azimuths=2200, side_azimuths=1600,
                    n_vehicles=30, n_pedestrians=30, n_cyclists=6, n_parked=30, n_static_objects=24,
                    n_buildings=60, tree_spacing=11.0, pole_spacing=25.0),
+    "small_objects": Preset("small_objects", RoadLayout(), scene_seconds=2.0, top_azimuths=800, side_azimuths=480,
+                            n_vehicles=2, n_pedestrians=0, n_cyclists=0, n_parked=0, n_static_objects=15,
+                            n_buildings=4, tree_spacing=30.0, pole_spacing=60.0, static_kinds=SMALL_OBJECT_KINDS,
+                            static_route_distance_m=15.0),
 }
 
 

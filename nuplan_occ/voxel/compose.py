@@ -50,11 +50,24 @@ class PlacedObject:
     anchors: np.ndarray | None = None
     """Raw points only (no faces): a voxel is the object's when it holds at least min_points_per_voxel of
     them, or one marked in `anchors` (V,) bool (e.g. solid cells that hold an observed point)."""
+    own_points: np.ndarray | None = None
+    """(N, 3) the object's own LiDAR points in its BOX frame, or None: when its geometry covers fewer
+    voxels than these points do (an empty or degenerate surface), the points' voxels are its voxels."""
 
     def vertices_ego(self) -> np.ndarray:
         """(V, 3) vertices moved from the box frame into the ego frame."""
-        v = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        return self._to_ego(self.vertices)
+
+    def _to_ego(self, points_box: np.ndarray) -> np.ndarray:
+        v = np.asarray(points_box, dtype=np.float64).reshape(-1, 3)
         return v @ yaw_matrix(self.yaw).T + np.asarray(self.center, dtype=np.float64)
+
+    def own_point_voxels(self, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+        """(M, 3) unique indices of the grid voxels holding at least one of `own_points` (none if None)."""
+        if self.own_points is None or len(self.own_points) == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+        return inside_grid(mesh_voxel_indices(self._to_ego(self.own_points), np.zeros((0, 3), np.int64), grid,
+                                              clip=False), grid)
 
 
 @dataclass
@@ -90,7 +103,15 @@ def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_
 def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill: bool = True,
                          box_margin_m: float | None = None) -> np.ndarray:
     """(M, 3) grid indices of an object's voxels: its surface posed by its box, voxelized exactly,
-    filled when `fill`, clipped to its box grown by box_margin_m (default half a voxel) and to the grid."""
+    filled when `fill`, clipped to its box grown by box_margin_m (default half a voxel) and to the grid;
+    or, when that covers fewer voxels than the object's own points, the voxels holding those points (so
+    an object with points is never lost: they lie in its box, and are not clipped again)."""
+    idx = _geometry_voxel_indices(obj, grid, fill, box_margin_m)
+    points = obj.own_point_voxels(grid)
+    return points if len(points) > len(idx) else idx
+
+
+def _geometry_voxel_indices(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> np.ndarray:
     margin = grid.voxel_size / 2.0 if box_margin_m is None else box_margin_m
     vertices = obj.vertices_ego()
     if len(obj.faces) == 0 and obj.min_points_per_voxel > 1:

@@ -85,3 +85,17 @@ def test_cli_train_sample_and_checkpoints(small_dataset, small_grid, tmp_path):
     runner_bad = runner.invoke(app, ["sample", "--data", small_dataset, "--ckpt", str(ck), "--mode", "nope",
                                      "--out", str(tmp_path / "x")])
     assert runner_bad.exit_code != 0
+
+
+def test_vae_trains_on_clips_and_the_bench_scores_the_same_held_out_frames_at_any_length(small_dataset, tmp_path):
+    one = run_vae_bench(small_dataset, 2, "tiny", crop=32, clip_len=1)
+    four = run_vae_bench(small_dataset, 2, "tiny", crop=32, clip_len=4)
+    # 3 scenes x 8 frames: the last scene is held out; T = 4 trains on the 2 x 5 clips of the other scenes
+    assert one["frames_held_out"] == four["frames_held_out"] == one["frames_scored"] == four["frames_scored"] == 8
+    assert (one["clips_train"], four["clips_train"]) == (16, 10) and four["clip_len"] == 4
+    result = CliRunner().invoke(app, ["train", "vae", "--data", small_dataset, "--out", str(tmp_path), "--steps", "1",
+                                      "--crop", "32", "--clip-len", "4"])
+    assert result.exit_code == 0, result.output
+    assert torch.load(tmp_path / checkpoint.VAE_FILE, weights_only=True)["clip_len"] == 4
+    result = CliRunner().invoke(app, ["train", "dit", "--data", small_dataset, "--out", str(tmp_path), "--clip-len", "2"])
+    assert result.exit_code != 0 and "--clip-len is for the VAE" in result.output

@@ -19,6 +19,7 @@ from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.pipeline.build import run_build
 from nuplan_occ.storage import read_manifest
 from nuplan_occ.storage.validate import validate_dataset
+from nuplan_occ.torch import OccupancyDataset
 
 from pipeline_helpers import build_params
 
@@ -55,6 +56,15 @@ def test_build_end_to_end_default_method_with_bad_blobs(data_root, tmp_path):
     assert missing.filename.split("/")[-1] in failed[missing.token]
     assert summary.frames_failed == 2 and summary.frames_built == len(manifest) - 2
     assert validate_dataset(str(out)) == []
+    # output frames are numbered 0, 1, 2, ... per scene; clips of 2 are the ok pairs, none across a failed frame
+    by_scene: dict[str, list[dict]] = {}
+    for r in manifest:
+        by_scene.setdefault(r["scene_token"], []).append(r)
+    assert all([r["output_index"] for r in rows] == list(range(len(rows))) for rows in by_scene.values())
+    pairs = sum(a["status"] == b["status"] == "ok" for rows in by_scene.values() for a, b in zip(rows, rows[1:]))
+    clips = OccupancyDataset(str(out), clip_len=2)
+    assert len(clips) == pairs > 0
+    assert all(np.diff(clips[i]["timestamp_us"].numpy()).tolist() == [100_000] for i in range(len(clips)))
 
     truth = {r["token"]: np.reshape(r["ego_to_global"], (4, 4)) for r in read_manifest(str(data_root / "truth")).to_pylist()}
     ok = [r for r in manifest if r["status"] == "ok"]

@@ -104,3 +104,23 @@ def test_sparse_solid_cells_need_company_or_an_observed_cell():
     crowded = crowded_or_anchored(block + 0.1, None, 4, GRID)
     assert {tuple(v) for v in np.floor((block[crowded] + 0.1 - GRID.lower) / 0.25).astype(int)} <= kept
     assert len(kept & block_voxels) >= 1
+
+
+def test_an_object_whose_geometry_covers_fewer_voxels_than_its_points_gets_the_points():
+    # a 0.4 m cone, yawed 45 deg, with 3 x 3 x 3 points 0.12 m apart in its box frame
+    axis = np.array([-0.12, 0.0, 0.12])
+    points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    common = dict(center=np.array([2.0, 2.0, -1.0]), yaw=np.pi / 4, size=np.array([0.4, 0.4, 0.7]),
+                  class_id=TRAFFIC_CONE, instance_id=5, own_points=points)
+    expected = {tuple(v) for v in GRID.point_to_index(PlacedObject(points, np.zeros((0, 3), int), **common)
+                                                       .vertices_ego())[0]}
+    empty_surface = PlacedObject(np.zeros((0, 3)), np.zeros((0, 3), int), **common)
+    assert {tuple(v) for v in object_voxel_indices(empty_surface, GRID)} == expected
+    sliver_v, sliver_f = box_mesh(np.array([-0.01, -0.01, -0.01]), np.array([0.01, 0.01, 0.01]))  # one voxel
+    sliver = PlacedObject(sliver_v, sliver_f, **common)
+    assert {tuple(v) for v in object_voxel_indices(sliver, GRID)} == expected
+    solid_v, solid_f = box_mesh(np.array([-0.2, -0.2, -0.35]), np.array([0.2, 0.2, 0.35]))  # the whole box
+    solid = object_voxel_indices(PlacedObject(solid_v, solid_f, **common), GRID)
+    assert len(solid) > len(expected) and {tuple(v) for v in solid} != expected
+    grids = compose_frame(np.zeros((0, 3)), np.zeros((0, 3), int), [empty_surface], None, GRID)
+    assert (grids.instance == 5).sum() == len(expected) and (grids.semantics[grids.instance == 5] == TRAFFIC_CONE).all()
