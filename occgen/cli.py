@@ -14,10 +14,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from nuplan_occ.cli_errors import CliApp
 from nuplan_occ.dataset import open_dataset
+from occgen.data import NoClipsError
 from occgen.exr import MapFileError
 from occgen.lidar_metrics import SweepSetError
 
-app = CliApp("occgen", extra_errors=(MapFileError, SweepSetError), no_args_is_help=True,
+app = CliApp("occgen", extra_errors=(MapFileError, SweepSetError, NoClipsError), no_args_is_help=True,
              help="Occupancy generation (UniScene v2 style): VAE, DiT, expansion, forecasting.")
 console = Console()
 

@@ -14,8 +14,8 @@ from readme_cases import (CASES, NAMESPACES, README, check_promises, is_shared_b
 def test_readme_has_the_documented_cases():
     commands = [c.text for c in CASES if c.kind == "command"]
     for needed in ("nuplan-occ build", "nuplan-occ view", "nuplan-occ eval", "nuplan-occ stats",
-                   "nuplan-occ validate", "--format occ3d", "--format uniscene", "nuplan-occ synth",
-                   "nuplan-occ summary", "occgen train vae", "--task spatial", "--task temporal",
+                   "nuplan-occ validate", "--format occ3d", "--format uniscene", "--format mesh", "nuplan-occ synth",
+                   "nuplan-occ summary", "nuplan-occ --debug", "occgen train vae", "--task spatial", "--task temporal",
                    "occgen render-maps", "occgen lidar"):
         assert any(needed in c for c in commands), needed
     assert any(c.kind == "python" and "DataLoader" in c.text for c in CASES)
