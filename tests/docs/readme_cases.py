@@ -93,7 +93,7 @@ def is_shared_build(case: Case) -> bool:
 
 def run_command(command: str, workspace: Path, env: dict) -> subprocess.CompletedProcess:
     return subprocess.run(["bash", "-c", command], cwd=workspace, env=env, capture_output=True, text=True,
-                          timeout=900)
+                          timeout=3600)
 
 
 def check_promises(command: str, workspace: Path) -> None:
