@@ -4,7 +4,7 @@ SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libxrender1 libgomp1
 DEMO_OUT ?= demo_out
 
-.PHONY: setup system-packages demo test bench clean
+.PHONY: setup system-packages demo test bench bench-manifest clean
 
 setup: .setup.stamp
 
@@ -26,5 +26,8 @@ test: setup
 bench: setup
 	$(PYTHON) -m nuplan_occ.bench bench
 
+bench-manifest: setup
+	$(PYTHON) -m nuplan_occ.bench_manifest --out bench
+
 clean:
-	rm -rf $(DEMO_OUT) bench/work bench/data .setup.stamp
+	rm -rf $(DEMO_OUT) bench/work bench/data bench/manifest_work .setup.stamp

@@ -31,6 +31,7 @@ from nuplan_occ.labels import LABELS, ROAD, ROAD_LINE
 from nuplan_occ.pipeline.build import default_work_root, plan_tasks, run_build
 from nuplan_occ.pipeline.params import default_params
 from nuplan_occ.pipeline.runner import run_stages
+from nuplan_occ.storage.digest import content_digests
 from nuplan_occ.voxel.baseline import paper_column_stamp, paper_voxelize_vertices
 from nuplan_occ.voxel.bev import rasterize_bev
 from nuplan_occ.voxel.metrics import ground_hole_rate, occupancy_metrics, trail_count
@@ -40,12 +41,9 @@ TRAIL_GROUND_CLEARANCE_M = 0.3
 
 
 def published_digest(root: Path) -> str:
-    """sha256 over the published files (shards, manifest, metadata) of a dataset root."""
-    digest = hashlib.sha256()
-    for path in sorted(p for p in root.rglob("*") if p.is_file() and "work" not in p.relative_to(root).parts):
-        digest.update(str(path.relative_to(root)).encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()
+    """sha256 over the published items (shards, visible manifest rows, metadata) of a dataset root."""
+    digests = content_digests(str(root))
+    return hashlib.sha256(json.dumps(digests, sort_keys=True).encode()).hexdigest()
 
 
 def bench_build(data_root: Path, out_dir: Path, workers: int) -> dict[str, Any]:

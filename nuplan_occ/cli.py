@@ -41,16 +41,27 @@ def build(
     set_option: List[str] = typer.Option([], "--set", help="STAGE.PARAM=VALUE override; repeatable."),
     strict: bool = typer.Option(False, help="Exit non-zero if any frame failed."),
     work_dir: Optional[Path] = typer.Option(None, help="Stage cache (default OUT/work, or a local cache folder for URLs)."),
+    num_shards: int = typer.Option(1, help="Split the logs into this many build shards (by log name hash)..."),
+    shard_index: int = typer.Option(0, help="...and build only this one (0-based; e.g. $SLURM_ARRAY_TASK_ID)."),
+    keep_work: str = typer.Option("default", help="Stage cache kept after a scene is published: all, default "
+                                  "(poses, boxes, surfaces, rows) or none."),
 ) -> None:
-    """Build the occupancy dataset; rerunning skips finished work."""
+    """Build the occupancy dataset; rerunning skips finished work. Any number of builds may write into
+    one OUT at once (other machines, other shards, the same logs)."""
     from nuplan_occ.pipeline.build import run_build
+    from nuplan_occ.pipeline.publish import KEEP_WORK
     from nuplan_occ.progress import BuildProgress, summary_table
 
     params = _build_params(config, set_option, rate_hz)
+    if keep_work not in KEEP_WORK or num_shards < 1 or not 0 <= shard_index < num_shards:
+        console.print(f"error: need --keep-work in {KEEP_WORK} and 0 <= --shard-index < --num-shards "
+                      f"(got {keep_work!r}, {shard_index}, {num_shards})", highlight=False)
+        raise typer.Exit(code=2)
     with BuildProgress(console) as progress:
         summary = run_build(data_root, out, params, split=split or None, log_names=log or None,
                             maps_root=str(maps_root) if maps_root else None, workers=workers, executor=executor,
-                            ray_address=ray_address, work_root=work_dir, on_plan=progress.on_plan,
+                            ray_address=ray_address, work_root=work_dir, num_shards=num_shards,
+                            shard_index=shard_index, keep_work=keep_work, on_plan=progress.on_plan,
                             on_event=progress.on_event)
     console.print(summary_table(summary))
     if summary.frames_built == 0 or (strict and summary.frames_failed):
@@ -95,7 +106,7 @@ def demo(
     seconds: float = typer.Option(4.0, help="Seconds of synthetic log."),
     workers: int = typer.Option(2, help="Parallel scene workers."),
 ) -> None:
-    """Synthesize a log, build it, print the summary and write a picture of one frame."""
+    """Synthesize a log, build it, print the summary, write a picture of one frame and the build report."""
     from nuplan_occ.pipeline.build import run_build
     from nuplan_occ.progress import BuildProgress, summary_table
     from nuplan_occ.synth.generate import synthesize
@@ -114,8 +125,9 @@ def demo(
 
 
 def _demo_report(out: Path) -> None:
-    """Quality of the demo build against the synthetic truth, and a picture of one frame."""
+    """Quality of the demo build against the synthetic truth, a picture of one frame and the build report."""
     from nuplan_occ.evaluate import evaluate
+    from nuplan_occ.report import write_report
     from nuplan_occ.viewer import render_frame
 
     result = evaluate(str(out / "dataset"), str(out / "data" / "truth"), json_path=out / "eval.json")
@@ -125,10 +137,12 @@ def _demo_report(out: Path) -> None:
     picture = out / "frame.png"
     render_frame(str(out / "dataset"), index=0, screenshot=picture)
     console.print(f"picture written to {picture}")
+    report = write_report(str(out / "dataset"), out / "report")
+    console.print(f"build report written to {report.index} (open it in a browser)")
 
 
 def _register_dataset_tools() -> None:
-    """view, eval, stats, validate, export."""
+    """view, eval, stats, validate, export, report."""
     from nuplan_occ.cli_dataset import register
 
     register(app)

@@ -1,4 +1,5 @@
-"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export. `register(app)` adds them."""
+"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, compact, report. `register(app)` adds
+them."""
 
 from __future__ import annotations
 
@@ -219,6 +220,47 @@ def export_cmd(
         err_console.print(f"frames without a mask member (key omitted in their files): {json.dumps(missing)}")
 
 
+def compact_cmd(out: str = typer.Argument(..., help="Dataset root (path or fsspec URL).")) -> None:
+    """Fold the manifest's fragments into one large file, dropping superseded rows (readers see the same
+    rows; safe while builds run; run one compaction at a time)."""
+    from nuplan_occ.storage.compact import compact
+    from nuplan_occ.storage.errors import StorageError
+
+    try:
+        result = compact(out)
+    except StorageError as exc:
+        err_console.print(f"error: {exc}", highlight=False)
+        raise typer.Exit(code=1) from None
+    console.print(f"{out}: {result.files_before} manifest file(s), {result.rows_before:,} rows -> "
+                  f"{result.output} ({result.rows_after:,} visible rows)", highlight=False)
+
+
+def report_cmd(
+    out: str = typer.Argument(..., help="Dataset root."),
+    report_dir: Optional[Path] = typer.Option(None, "--out", help="Report folder (default OUT/report; required "
+                                               "for a dataset at a URL)."),
+    every: int = typer.Option(10, "--every", min=1, help="A top-down thumbnail every N frames of a scene."),
+    work_dir: Optional[Path] = typer.Option(None, help="The build's work folder holding build_log.jsonl (default "
+                                            "as for build)."),
+) -> None:
+    """Static HTML report of a build (opens from disk): summary, flagged scenes and frames, per-scene pages."""
+    from rich.progress import Progress
+
+    from nuplan_occ.report import write_report
+
+    if report_dir is None and "://" in out and not out.startswith("file://"):
+        raise typer.BadParameter(f"{out} is a URL: give --out, a local folder for the report")
+    with Progress(console=err_console, transient=True) as progress:
+        task = progress.add_task("report", total=None)
+        result = write_report(out, report_dir, every=every, work_root=work_dir,
+                              progress=lambda done, total, scene: progress.update(
+                                  task, completed=done, total=total, description=scene))
+    by_rule = ", ".join(f"{name} {count}" for name, count in result.rule_frames.items() if count) or "none"
+    console.print(f"{result.scenes} scenes ({result.rendered} rendered, {result.reused} unchanged), "
+                  f"{result.flagged_frames} flagged frames ({by_rule})", highlight=False)
+    console.print(f"report written to {result.index}", highlight=False, soft_wrap=True)
+
+
 def register(app: typer.Typer) -> None:
     """Add the dataset tools to the main CLI app."""
     app.command("view")(view_cmd)
@@ -226,3 +268,7 @@ def register(app: typer.Typer) -> None:
     app.command("stats")(stats_cmd)
     app.command("validate")(validate_cmd)
     app.command("export")(export_cmd)
+    app.command("compact")(compact_cmd)
+
+
+    app.command("report")(report_cmd)

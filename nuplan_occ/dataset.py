@@ -17,9 +17,10 @@ import pyarrow.compute as pc
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import MissingMemberError
-from nuplan_occ.storage.manifest import MEMBER_FIELDS, read_manifest
+from nuplan_occ.storage.manifest import MEMBER_FIELDS
+from nuplan_occ.storage.manifest_reader import ManifestIndex
 from nuplan_occ.storage.metadata import read_metadata
-from nuplan_occ.storage.reader import BlobRequest, ShardReader, decode_request
+from nuplan_occ.storage.reader import BlobRequest, ShardReader, decode_request, request_of
 from nuplan_occ.storage.records import STATUS_OK
 
 
@@ -28,11 +29,20 @@ def _ints(table: pa.Table, name: str) -> np.ndarray:
     return table[name].cast(pa.int64()).fill_null(-1).to_numpy()
 
 
+INDEX_COLUMNS = ("status", "token", "frame_index")
+FRAME_COLUMNS = ("key", "shard", "token", "log", "scene_token", "timestamp_us", "frame_index", "ego_to_global")
+
+
 class OccDataset:
     """Random access to the ok frames of a dataset root (local path or fsspec URL).
 
-    Attributes: `manifest` (pyarrow Table of ok frames, in index order), `metadata` (dataset.json),
-    `grid` (GridSpec), `labels` (id -> {"name", "color"}). Keeps shard handles open per process.
+    Opening reads only the manifest's index columns (status, token, scene, frame index, and what
+    resolving commits needs: `manifest_reader.ManifestIndex`); a frame's other columns are read when
+    it is asked for. Attributes: `metadata` (dataset.json), `grid` (GridSpec), `labels` (id ->
+    {"name", "color"}), `scene_codes`
+    (int per frame, equal within a scene), `frame_index` (int64 per frame). `column(name)` reads one
+    manifest column of every ok frame; `manifest` is the whole table of ok frames (read on first use).
+    Keeps shard handles open per process.
     """
 
     def __init__(self, root: str):
@@ -42,21 +52,30 @@ class OccDataset:
         self.labels = {
             int(c["id"]): {"name": c["name"], "color": tuple(c["color"])} for c in self.metadata["labels"]["classes"]
         }
-        table = read_manifest(root)
-        self.manifest = table.filter(pc.equal(table["status"], STATUS_OK)).combine_chunks()
-        shard = self.manifest["shard"].combine_chunks().dictionary_encode()
-        self._shard_names = shard.dictionary.to_pylist()
-        self._shard_codes = shard.indices.to_numpy()
-        self._spans = {
-            m: np.stack([_ints(self.manifest, f"{m}_{f}") for f in MEMBER_FIELDS], axis=1)
-            for m in MEMBERS
-        }
-        self._poses = self.manifest["ego_to_global"].combine_chunks().values.to_numpy().reshape(-1, 4, 4)
-        self._timestamps = _ints(self.manifest, "timestamp_us")
-        self._frame_index = _ints(self.manifest, "frame_index")
-        self._strings = {n: self.manifest[n].combine_chunks() for n in ("key", "token", "log", "scene_token")}
-        self._token_index: dict[str, int] | None = None
+        self._index = ManifestIndex(root)
+        index = self._index.table(list(INDEX_COLUMNS))
+        ok = pc.equal(index["status"], STATUS_OK).combine_chunks().fill_null(False).to_numpy(zero_copy_only=False)
+        self._positions = np.flatnonzero(ok)
+        index = index.filter(ok)
+        self._tokens = index["token"].combine_chunks()
+        self.scene_codes = self._index.scene_codes[self._positions]
+        self.frame_index = _ints(index, "frame_index")
+        self._manifest: pa.Table | None = None
         self._reader = ShardReader(root)
+
+    @property
+    def manifest(self) -> pa.Table:
+        """Every manifest column of the ok frames, in index order (read on first use)."""
+        if self._manifest is None:
+            self._manifest = self._index.table(None, self._positions)
+        return self._manifest
+
+    def column(self, name: str) -> pa.Array:
+        """Manifest column `name` of every ok frame, in index order (reads that column only)."""
+        return self._index.column(name, self._positions)
+
+    def has_column(self, name: str) -> bool:
+        return name in self._index.schema.names
 
     def __len__(self) -> int:
         return self.manifest.num_rows
@@ -73,47 +92,48 @@ class OccDataset:
             raise IndexError(f"frame index {i} out of range for {n} frames of {self.root}")
         return int(i) % n
 
+    def _frames(self, indices: list[int], members: set[str]) -> pa.Table:
+        """Identity and the spans of `members` of frames `indices` (read for these frames only)."""
+        columns = [*FRAME_COLUMNS, *(f"{m}_{f}" for m in MEMBERS if m in members for f in MEMBER_FIELDS)]
+        return self._index.table(columns, self._positions[np.asarray(indices, dtype=np.int64)])
+
     def members_of(self, i: int) -> tuple[str, ...]:
         """Members stored for frame i, in `MEMBERS` order."""
-        i = self._check_index(i)
-        return tuple(m for m in MEMBERS if self._spans[m][i, 0] >= 0)
-
-    def _request(self, i: int, member: str) -> BlobRequest:
-        if member not in MEMBERS:
-            raise MissingMemberError(f"unknown member {member!r} (known: {list(MEMBERS)})")
-        offset, nbytes, crc = self._spans[member][i]
-        key = self._strings["key"][i].as_py()
-        if offset < 0:
-            raise MissingMemberError(f"{self.root}: frame {key!r} has no {member!r} member")
-        return BlobRequest(self._shard_names[self._shard_codes[i]], int(offset), int(nbytes), int(crc), key, member)
-
-    def _identity(self, i: int) -> dict:
-        return {
-            "ego_to_global": self._poses[i].copy(),
-            "token": self._strings["token"][i].as_py(),
-            "log_name": self._strings["log"][i].as_py(),
-            "scene_token": self._strings["scene_token"][i].as_py(),
-            "timestamp_us": int(self._timestamps[i]),
-            "frame_index": int(self._frame_index[i]),
-        }
+        row = self._frames([self._check_index(i)], set(MEMBERS)).to_pylist()[0]
+        return tuple(m for m in MEMBERS if row[f"{m}_offset"] is not None)
 
     def get_many(self, indices: Sequence[int], keys: Iterable[str] | None = None) -> list[dict]:
         """Frames `indices`, each with the members `keys` (None: every member the frame has).
 
         The members of all frames are fetched together, so frames adjacent in a shard cost one read.
         """
-        rows = [self._check_index(i) for i in indices]
-        wanted = [tuple(keys) if keys is not None else self.members_of(i) for i in rows]
-        requests = [self._request(i, m) for i, members in zip(rows, wanted) for m in members]
+        positions = [self._check_index(i) for i in indices]
+        keys = tuple(keys) if keys is not None else None
+        unknown = sorted(set(keys or ()) - set(MEMBERS))
+        if unknown:
+            raise MissingMemberError(f"unknown member {unknown[0]!r} (known: {list(MEMBERS)})")
+        rows = self._frames(positions, set(keys) if keys is not None else set(MEMBERS)).to_pylist()
+        wanted = [tuple(keys) if keys is not None else tuple(m for m in MEMBERS if row[f"{m}_offset"] is not None)
+                  for row in rows]
+        requests = [self._request(row, m) for row, members in zip(rows, wanted) for m in members]
         blobs = iter(self._reader.fetch(requests))
         reqs = iter(requests)
         frames = []
-        for i, members in zip(rows, wanted):
-            frame = self._identity(i)
+        for row, members in zip(rows, wanted):
+            frame = _identity(row)
             for m in members:
                 frame[m] = decode_request(next(reqs), next(blobs), self.grid)
             frames.append(frame)
         return frames
+
+    def _request(self, row: dict, member: str) -> BlobRequest:
+        if row[f"{member}_offset"] is None:
+            raise MissingMemberError(f"{self.root}: frame {row['key']!r} has no {member!r} member")
+        return request_of(row, member)
+
+    def identity(self, i: int) -> dict:
+        """Frame i's identity (pose, token, log, scene, timestamp, frame index) without reading a shard."""
+        return _identity(self._frames([self._check_index(i)], set()).to_pylist()[0])
 
     def get(self, i: int, keys: Iterable[str] | None = None) -> dict:
         """Frame i with only the members `keys` (None: every member it has), plus its identity."""
@@ -121,16 +141,25 @@ class OccDataset:
 
     def index_of_token(self, token: str) -> int:
         """Index of the ok frame with this lidar_pc token (KeyError if there is none)."""
-        if self._token_index is None:
-            self._token_index = {t: i for i, t in enumerate(self._strings["token"].to_pylist())}
-        try:
-            return self._token_index[token]
-        except KeyError:
-            raise KeyError(f"{self.root}: no ok frame with token {token!r}") from None
+        found = pc.index(self._tokens, token).as_py()
+        if found < 0:
+            raise KeyError(f"{self.root}: no ok frame with token {token!r}")
+        return found
 
     def close(self) -> None:
         """Close the shard handles of this process."""
         self._reader.close()
+
+
+def _identity(row: dict) -> dict:
+    return {
+        "ego_to_global": np.asarray(row["ego_to_global"], dtype=np.float64).reshape(4, 4),
+        "token": row["token"],
+        "log_name": row["log"],
+        "scene_token": row["scene_token"],
+        "timestamp_us": int(row["timestamp_us"]),
+        "frame_index": int(row["frame_index"]),
+    }
 
 
 def open_dataset(path_or_url: str) -> OccDataset:

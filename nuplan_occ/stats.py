@@ -18,7 +18,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from nuplan_occ.storage.codecs import MEMBERS
-from nuplan_occ.storage.manifest import read_manifest
+from nuplan_occ.storage.manifest_reader import read_manifest
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.records import STATUS_FAILED, STATUS_OK
 

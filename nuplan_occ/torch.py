@@ -25,17 +25,17 @@ from nuplan_occ.storage.errors import DatasetFormatError
 
 
 def _speeds(ds: OccDataset, name: str) -> np.ndarray:
-    if name not in ds.manifest.column_names:
+    if not ds.has_column(name):
         raise DatasetFormatError(f"{ds.root}: manifest has no {name!r} column, needed for subsets")
-    return ds.manifest[name].cast(pa.float64()).fill_null(np.nan).to_numpy()
+    return ds.column(name).cast(pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
 
 
 def _output_index(ds: OccDataset, scenes: np.ndarray) -> np.ndarray:
     """The manifest's output_index; derived from frame_index for scenes written without it."""
-    derived = clips.output_index_from_frame_index(scenes, ds.manifest["frame_index"].to_numpy())
-    if "output_index" not in ds.manifest.column_names:
+    derived = clips.output_index_from_frame_index(scenes, ds.frame_index)
+    if not ds.has_column("output_index"):
         return derived
-    stored = ds.manifest["output_index"].cast(pa.int64()).fill_null(-1).to_numpy()
+    stored = ds.column("output_index").cast(pa.int64()).fill_null(-1).to_numpy(zero_copy_only=False)
     return np.where(stored >= 0, stored, derived)
 
 
@@ -60,7 +60,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
     ):
         self.ds = OccDataset(path)
         self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
-        scenes = self.ds.manifest["scene_token"].combine_chunks().dictionary_encode().indices.to_numpy()
+        scenes = self.ds.scene_codes
         frames = _output_index(self.ds, scenes)
         self._order = clips.clip_order(scenes, frames)
         starts = clips.clip_starts(scenes, frames, self._order, clip_len, stride)

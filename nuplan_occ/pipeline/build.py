@@ -1,8 +1,9 @@
-"""`nuplan-occ build`: plan scene tasks over the selected logs, run them on an executor, commit the
-manifest as scenes finish, and summarise (frames built, failures with reasons, time per stage, bytes).
+"""`nuplan-occ build`: plan scene tasks over the selected logs (optionally one shard of them), run them
+on an executor, and summarise (frames built, failures with reasons, time per stage, bytes).
 
-The manifest is committed after every finished scene (at most every `commit_every_s` seconds, and at
-the end), so an interrupted build keeps what it published; a rerun reuses every cached stage output.
+Every worker publishes its own scenes (shard, then manifest fragment: `pipeline.publish`), so an
+interrupted build keeps every finished scene, a rerun reuses every cached stage output, and any number
+of build processes (disjoint or overlapping logs, any machines) may write into one output at once.
 """
 
 from __future__ import annotations
@@ -11,17 +12,16 @@ import hashlib
 import os
 import time
 from collections import Counter, defaultdict
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from nuplan_occ import __version__
 from nuplan_occ.io.data_root import maps_root_for, resolve_logs, sensor_root_for
 from nuplan_occ.io.reader import NuplanLog
+from nuplan_occ.pipeline.build_log import BuildLog
 from nuplan_occ.pipeline.executors import execute
 from nuplan_occ.pipeline.runner import SceneResult
-from nuplan_occ.pipeline.scene import SceneTask, log_id_of, output_slots
-from nuplan_occ.storage import DatasetWriter, FrameRecord
+from nuplan_occ.pipeline.scene import SceneTask, log_id_of
 
 
 @dataclass
@@ -51,13 +51,10 @@ class BuildSummary:
         self.peak_rss_mb = max(self.peak_rss_mb, result.peak_rss_mb)
         for stage, seconds in result.stage_seconds.items():
             self.stage_seconds[stage] += seconds
-        for row in result.rows:
-            if row.get("status") == "ok":
-                self.frames_built += 1
-                self.bytes_total += sum(int(v) for k, v in row.items() if k.endswith("_nbytes") and v is not None)
-            else:
-                self.frames_failed += 1
-                self.failure_reasons[_short_reason(row.get("failure_reason", ""))] += 1
+        self.frames_built += result.frames_built
+        self.frames_failed += result.frames_failed
+        self.bytes_total += result.bytes_total
+        self.failure_reasons.update(result.failure_reasons)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -69,10 +66,6 @@ class BuildSummary:
         }
 
 
-def _short_reason(reason: str) -> str:
-    return reason.splitlines()[0][:160] if reason else "unknown"
-
-
 def default_work_root(out: str) -> Path:
     """Stage outputs live under OUT/work for a local OUT, else in a local cache folder keyed by OUT."""
     if "://" not in out or out.startswith("file://"):
@@ -81,8 +74,16 @@ def default_work_root(out: str) -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nuplan-occ" / "work" / digest
 
 
+def logs_of_shard(db_paths: list[Path], num_shards: int, shard_index: int) -> list[Path]:
+    """The logs of build shard `shard_index` of `num_shards`: those whose DB file stem hashes to it
+    (`log_id_of(stem) % num_shards`), so every machine computes the same partition from names alone."""
+    if num_shards < 1 or not 0 <= shard_index < num_shards:
+        raise ValueError(f"--shard-index {shard_index} must be in [0, --num-shards {num_shards})")
+    return [p for p in db_paths if log_id_of(Path(p).stem) % num_shards == shard_index]
+
+
 def plan_tasks(db_paths: list[Path], data_root: Path, maps_root: Path, out: str, work_root: Path,
-               params: dict[str, Any]) -> list[SceneTask]:
+               params: dict[str, Any], keep_work: str = "default") -> list[SceneTask]:
     """One task per scene with at least one sweep, in log then scene-name order."""
     tasks = []
     for db_path in db_paths:
@@ -92,57 +93,35 @@ def plan_tasks(db_paths: list[Path], data_root: Path, maps_root: Path, out: str,
             for scene in log.scenes:
                 if log.frames_of_scene(scene.token):
                     tasks.append(SceneTask(str(db_path), str(sensor_root), str(maps_root), log_name,
-                                           log_id_of(log_name), scene.token, scene.name, out, str(work_root), params))
+                                           log_id_of(log_name), scene.token, scene.name, out, str(work_root), params,
+                                           keep_work))
     return tasks
-
-
-def failed_scene_rows(task: SceneTask, reason: str, rate_hz: float, sweep_rate_hz: float) -> list[dict]:
-    """Publish failure rows for every output frame of a scene that could not be built at all."""
-    with NuplanLog(task.db_path, task.sensor_root) as log:
-        own = log.frames_of_scene(task.scene_token)
-        slots = output_slots(own, rate_hz, sweep_rate_hz)
-        records = [FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
-                               scene_name=task.scene_name, frame_index=f.index, token=f.token,
-                               timestamp_us=f.timestamp_us, ego_to_global=log.frame_pose(f), arrays={},
-                               columns={"output_index": slots[f.token]}, status="failed", failure_reason=reason)
-                   for f in own if f.token in slots]
-    return DatasetWriter(task.out_root, metadata={"params": {}}).write_shard(task.shard_key, records)
-
-
-def params_metadata(params: dict[str, Any]) -> dict[str, Any]:
-    """Params as plain JSON for the dataset metadata."""
-    return {name: asdict(value) if is_dataclass(value) else value for name, value in params.items()}
 
 
 def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str | None = "mini",
               log_names: list[str] | None = None, db_paths: list[str] | None = None, maps_root: str | None = None,
               workers: int = 1, executor: str = "local", ray_address: str | None = None,
-              work_root: Path | None = None,
+              work_root: Path | None = None, num_shards: int = 1, shard_index: int = 0,
+              keep_work: str = "default",
               on_plan: Callable[[list[SceneTask]], None] | None = None,
-              on_event: Callable[[tuple[str, str, str]], None] | None = None,
-              commit_every_s: float = 10.0) -> BuildSummary:
-    """Build the dataset at `out` from the logs under `data_root`; returns the summary. work_root: where
-    stage outputs are cached (default: see `default_work_root`)."""
+              on_event: Callable[[tuple[str, str, str]], None] | None = None) -> BuildSummary:
+    """Build the dataset at `out` from the logs under `data_root` (shard `shard_index` of `num_shards`
+    of them); returns the summary. work_root: where stage outputs are cached (default: see
+    `default_work_root`); keep_work: work-folder policy (see `pipeline.publish`); each run appends its
+    scenes' stage times to the build log there (`nuplan_occ.pipeline.build_log`)."""
     started = time.perf_counter()
-    logs = resolve_logs(data_root, split=split, log_names=log_names, db_paths=db_paths)
+    logs = logs_of_shard(resolve_logs(data_root, split=split, log_names=log_names, db_paths=db_paths),
+                         num_shards, shard_index)
     maps = maps_root_for(data_root, maps_root)
-    tasks = plan_tasks(logs, Path(data_root), maps, out, Path(work_root) if work_root else default_work_root(out), params)
+    work_root = Path(work_root) if work_root else default_work_root(out)
+    tasks = plan_tasks(logs, Path(data_root), maps, out, work_root, params, keep_work)
     if on_plan:
         on_plan(tasks)
-    writer = DatasetWriter(out, metadata={"params": params_metadata(params), "software": f"nuplan-occ {__version__}"})
     summary = BuildSummary()
-    pending_rows: list[dict] = []
-    last_commit = time.monotonic()
+    build_log = BuildLog(work_root)
     by_scene = {(t.log_name, t.scene_name): t for t in tasks}
     for result in execute(tasks, executor, workers, ray_address, on_event or (lambda event: None)):
-        if result.error:
-            result.rows = failed_scene_rows(by_scene[(result.log_name, result.scene_name)], result.error,
-                                            params["load"].rate_hz, params["load"].sweep_rate_hz)
         summary.add(result)
-        pending_rows.extend(result.rows)
-        if time.monotonic() - last_commit >= commit_every_s:
-            writer.commit(pending_rows)
-            pending_rows, last_commit = [], time.monotonic()
-    writer.commit(pending_rows)
+        build_log.scene(by_scene[(result.log_name, result.scene_name)].scene_token, result)
     summary.wall_seconds = time.perf_counter() - started
     return summary

@@ -61,12 +61,10 @@ class StageCache:
     def get(self, stage: str, key: str) -> dict[str, Any] | None:
         """The stored outputs, or None when absent (a damaged entry counts as absent)."""
         path = self._path(stage, key)
-        if not path.exists():
-            return None
         try:
             return pickle.loads(zstandard.ZstdDecompressor().decompress(path.read_bytes()))
-        except (pickle.UnpicklingError, zstandard.ZstdError, EOFError, AttributeError, ImportError):
-            return None
+        except (FileNotFoundError, pickle.UnpicklingError, zstandard.ZstdError, EOFError, AttributeError, ImportError):
+            return None  # absent, or removed by another build's work-folder policy, or damaged
 
     def put(self, stage: str, key: str, outputs: dict[str, Any]) -> None:
         """Store outputs atomically."""

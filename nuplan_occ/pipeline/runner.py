@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from nuplan_occ.pipeline.cache import StageCache, stable_hash
+from nuplan_occ.pipeline.publish import failed_scene_rows, publish_scene, row_counts
 from nuplan_occ.pipeline.scene import SceneTask, source_fingerprint
 
 EventSink = Callable[[tuple[str, str, str]], None]
@@ -23,12 +24,16 @@ class SceneError(RuntimeError):
 
 @dataclass
 class SceneResult:
-    """What a worker returns for one scene. rows: manifest rows (already written to the scene's shard);
-    computed: stages that ran (the others were found in the cache); error: set when the scene failed."""
+    """What a worker returns for one scene, whose shard and manifest fragment it has published itself:
+    frame counts, failure reasons (first line -> frames) and stored bytes of its rows; computed: stages
+    that ran (the others were found in the cache); error: set when the scene failed."""
 
     log_name: str
     scene_name: str
-    rows: list[dict] = field(default_factory=list)
+    frames_built: int = 0
+    frames_failed: int = 0
+    failure_reasons: dict[str, int] = field(default_factory=dict)
+    bytes_total: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
     computed: list[str] = field(default_factory=list)
     error: str = ""
@@ -100,17 +105,20 @@ def _outputs_still_valid(stage_name: str, outputs: dict[str, Any], task: SceneTa
 
 
 def run_scene(task: SceneTask, events: EventSink | None = None) -> SceneResult:
-    """Build one scene; never raises for a bad scene: the error comes back in the result."""
+    """Build one scene and publish it (shard, manifest fragment, work policy: `publish.py`); never raises
+    for a bad scene: its frames are published as failed and the error comes back in the result."""
     from stages import PIPELINE
 
     result = SceneResult(task.log_name, task.scene_name)
     try:
-        artifacts = run_stages(task, PIPELINE, ("rows",), events, result)
-        result.rows = artifacts["rows"]
+        rows = run_stages(task, PIPELINE, ("rows",), events, result)["rows"]
     except Exception as exc:  # a scene failure is recorded, never fatal to the build
         result.error = f"{type(exc).__name__}: {exc}"
-        result.rows = []
         traceback.print_exc()
+        rows = failed_scene_rows(task, result.error)
+    publish_scene(task, rows, task.keep_work)
+    result.frames_built, result.frames_failed, reasons, result.bytes_total = row_counts(rows)
+    result.failure_reasons = dict(reasons)
     result.peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
     if events:
         events((task.log_name, task.scene_name, "done"))

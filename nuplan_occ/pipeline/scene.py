@@ -18,7 +18,8 @@ class SceneTask:
     """Everything a worker needs to build one scene; plain values so it crosses process/Ray boundaries.
 
     out_root: dataset root (path or fsspec URL); work_root: local folder for stage outputs.
-    params: stage name -> params instance.
+    params: stage name -> params instance. keep_work: work-folder policy after publishing (all,
+    default, none; see `pipeline.publish`), not part of any cache key.
     """
 
     db_path: str
@@ -31,6 +32,7 @@ class SceneTask:
     out_root: str
     work_root: str
     params: dict = field(hash=False, compare=False, default_factory=dict)
+    keep_work: str = "default"
 
     @property
     def work_dir(self) -> Path:

@@ -1,4 +1,5 @@
-"""On-disk dataset format: tar shards of per-frame zstd members + a Parquet manifest (the commit record).
+"""On-disk dataset format: tar shards of per-frame zstd members + a Parquet manifest (the commit record),
+published as one immutable fragment per scene and commit (`fragments.py`) and folded by `compact`.
 
 Write with `DatasetWriter(root, metadata).write_shard(key, records)` then `.commit(rows)`; read with
 `nuplan_occ.dataset.open_dataset(root)`, or low level with `read_manifest` / `read_member`.
@@ -8,7 +9,7 @@ from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import (
     ChecksumError, DatasetFormatError, InvalidFrameError, MissingMemberError, StorageError,
 )
-from nuplan_occ.storage.manifest import read_manifest
+from nuplan_occ.storage.manifest_reader import read_manifest
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.reader import ShardReader, read_member
 from nuplan_occ.storage.records import FrameRecord, frame_key

@@ -1,4 +1,5 @@
-"""The Parquet manifest: one row per frame, the commit record of the dataset.
+"""Manifest rows as Arrow tables: one row per frame, the commit record of the dataset (files and
+commits: `fragments.py`; reading: `manifest_reader.py`).
 
 Column order is fixed: the base columns below, then `<member>_offset`, `<member>_nbytes`,
 `<member>_crc32` for every member of `MEMBERS` (null when the frame lacks the member), then the
@@ -6,7 +7,8 @@ extra columns of the records (`FrameRecord.columns`) sorted by name. Rows are so
 (log_id, timestamp_us, frame_index, token) and unique in (log, token). Offsets are byte offsets of a
 member's data inside `<root>/shards/<shard>.tar`; crc32 is `zlib.crc32` of the stored (compressed)
 bytes. `class_hist[i]` counts the voxels of label id i (length = largest label id + 1).
-`ego_to_global` is T_global_from_ego flattened row-major (16 float64).
+`ego_to_global` is T_global_from_ego flattened row-major (16 float64). `commit_id` names the commit
+that published the row (null in datasets written before commit ids; see `fragments.py`).
 """
 
 from __future__ import annotations
@@ -18,10 +20,8 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from nuplan_occ.storage.codecs import MEMBERS
-from nuplan_occ.storage.errors import DatasetFormatError, InvalidFrameError
-from nuplan_occ.storage.fsio import resolve
+from nuplan_occ.storage.errors import InvalidFrameError
 
-MANIFEST_NAME = "manifest.parquet"
 ROW_GROUP_SIZE = 131072
 SORT_KEYS = ("log_id", "timestamp_us", "frame_index", "token")
 
@@ -44,6 +44,7 @@ def base_schema(hist_len: int) -> pa.Schema:
         ("status", pa.string()),
         ("failure_reason", pa.string()),
         ("class_hist", pa.list_(pa.int64(), hist_len)),
+        ("commit_id", pa.string()),
     ]
     for member in MEMBERS:
         fields += [
@@ -87,7 +88,7 @@ def _identity(table: pa.Table) -> pa.ChunkedArray:
     return pc.binary_join_element_wise(table["log"], table["token"], "\x1f")
 
 
-def _ordered(table: pa.Table) -> pa.Table:
+def ordered(table: pa.Table) -> pa.Table:
     """Fixed column order (base + members, then extras by name) and fixed row order."""
     n_base = len(base_schema(1))
     names = table.column_names[:n_base] + sorted(table.column_names[n_base:])
@@ -95,40 +96,15 @@ def _ordered(table: pa.Table) -> pa.Table:
     return table.sort_by([(k, "ascending") for k in SORT_KEYS]).combine_chunks()
 
 
-def merge(existing: pa.Table | None, new: pa.Table) -> pa.Table:
-    """`existing` with the rows of `new` added; a new row replaces an existing one of equal (log, token)."""
-    new_ids = _identity(new)
-    if len(pc.unique(new_ids)) != len(new_ids):
+def check_unique(table: pa.Table) -> None:
+    """Raise InvalidFrameError if rows repeat a (log, token) pair."""
+    ids = _identity(table)
+    if len(pc.unique(ids)) != len(ids):
         raise InvalidFrameError("commit: the rows repeat a (log, token) pair")
-    if existing is None:
-        return _ordered(new)
-    n_base = len(base_schema(1))
-    try:
-        # a table read back from Parquet names list children "element"; restore the writer's types
-        existing = existing.cast(pa.schema(list(new.schema)[:n_base] + list(existing.schema)[n_base:]))
-        kept = existing.filter(pc.invert(pc.is_in(_identity(existing), value_set=new_ids.combine_chunks())))
-        merged = pa.concat_tables([kept, new], promote_options="permissive")
-    except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError, ValueError) as exc:
-        raise DatasetFormatError(f"commit: new rows do not fit the published manifest's columns: {exc}") from exc
-    return _ordered(merged)
 
 
-def to_parquet_bytes(table: pa.Table) -> bytes:
-    """Parquet file bytes (zstd, 128 k-row row groups); equal tables give equal bytes."""
+def to_parquet_bytes(table: pa.Table, row_group_size: int = ROW_GROUP_SIZE) -> bytes:
+    """Parquet file bytes (zstd, `row_group_size` rows per row group); equal tables give equal bytes."""
     sink = io.BytesIO()
-    pq.write_table(table, sink, compression="zstd", row_group_size=ROW_GROUP_SIZE)
+    pq.write_table(table, sink, compression="zstd", row_group_size=row_group_size)
     return sink.getvalue()
-
-
-def read_manifest(root: str) -> pa.Table:
-    """The published manifest of a dataset root (all rows, failed ones included)."""
-    fs, path = resolve(root)
-    target = f"{path}/{MANIFEST_NAME}"
-    try:
-        data = fs.cat_file(target)
-    except FileNotFoundError as exc:
-        raise DatasetFormatError(f"{root}: no {MANIFEST_NAME} (nothing committed?)") from exc
-    try:
-        return pq.read_table(io.BytesIO(data))
-    except pa.ArrowException as exc:
-        raise DatasetFormatError(f"{target}: not a readable Parquet file ({exc})") from exc

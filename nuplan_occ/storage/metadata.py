@@ -19,7 +19,8 @@ FORMAT_NAME = "nuplan-occ-tar-shards"
 SCHEMA_VERSION = 2
 METADATA_NAME = "dataset.json"
 LAYOUT = {
-    "manifest": "manifest.parquet (one row per frame; a frame exists iff its row is here)",
+    "manifest": "manifest/**/*.parquet: one fragment per scene and commit (row per frame); per scene_token the "
+                "rows of the greatest commit_id are visible; a frame exists iff its row is visible",
     "shards": "shards/<shard>.tar",
     "member_name": "<frame_key>.<suffix>",
     "frame_key": "{log}-{frame_index:06d}, characters of log outside [A-Za-z0-9_-] replaced by '_'",

@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from nuplan_occ.grid import GridSpec
-from nuplan_occ.storage.manifest import read_manifest
+from nuplan_occ.storage.manifest_reader import read_manifest
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.reader import ShardReader, decode_request, request_of
 

@@ -25,7 +25,8 @@ from nuplan_occ.storage import codecs
 from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import DatasetFormatError
 from nuplan_occ.storage.fsio import resolve
-from nuplan_occ.storage.manifest import SORT_KEYS, base_schema, read_manifest
+from nuplan_occ.storage.manifest import SORT_KEYS, base_schema
+from nuplan_occ.storage.manifest_reader import read_manifest
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.writer import shard_path
 
@@ -126,7 +127,7 @@ def validate_dataset(root: str) -> list[str]:
     if problems:
         return problems
     grid = GridSpec.from_dict(metadata["grid"])
-    where = f"{root}/manifest.parquet"
+    where = f"{root}/manifest"
     problems += _column_problems(table, int(metadata["class_hist_length"]), where)
     problems += _order_problems(table, where)
     rows = table.to_pylist()

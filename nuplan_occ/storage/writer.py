@@ -2,10 +2,13 @@
 
 Layout under the root (local path or fsspec URL):
     dataset.json                 metadata (see `metadata.py`)
-    manifest.parquet             one row per frame, the commit record (see `manifest.py`)
+    manifest/                    one immutable Parquet fragment per scene and commit (see `fragments.py`);
+                                 with its rows, the commit record (see `manifest.py`)
     shards/<shard_key>.tar       WebDataset-style members `<frame_key>.<suffix>` (see `codecs.py`)
-Shards and the two top-level files are published atomically (`fsio.atomic_put`). A shard written but
+Shards, fragments and dataset.json are published atomically (`fsio.atomic_put`). A shard written but
 never committed holds no frame of the dataset; rewriting a shard with equal input gives equal bytes.
+Any number of writers (processes, machines) may commit into one root at once: nothing is read back but
+the committed scenes' own fragment folders, so a commit costs the same at any dataset size.
 """
 
 from __future__ import annotations
@@ -24,9 +27,8 @@ from nuplan_occ.storage import codecs
 from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import DatasetFormatError, InvalidFrameError
 from nuplan_occ.storage.fsio import atomic_put, resolve
-from nuplan_occ.storage.manifest import (
-    MANIFEST_NAME, MEMBER_FIELDS, RESERVED_COLUMNS, merge, read_manifest, rows_to_table, to_parquet_bytes,
-)
+from nuplan_occ.storage.fragments import publish_fragments
+from nuplan_occ.storage.manifest import MEMBER_FIELDS, RESERVED_COLUMNS, check_unique, ordered, rows_to_table
 from nuplan_occ.storage.metadata import METADATA_NAME, build_metadata, label_ids, metadata_bytes
 from nuplan_occ.storage.records import STATUS_FAILED, STATUS_OK, FrameRecord
 from nuplan_occ.storage.tarpack import pack_tar
@@ -211,15 +213,15 @@ class DatasetWriter:
         return hist[: self._hist_len].tolist()
 
     # ------------------------------------------------------------------ commit
-    def commit(self, rows: list[dict]) -> None:
-        """Merge `rows` into the manifest and publish dataset.json and manifest.parquet (atomic each).
+    def commit(self, rows: list[dict]) -> list[str]:
+        """Publish dataset.json and `rows` as one fragment per scene under one new commit id; returns the
+        fragment paths written.
 
-        Rows replace published rows of equal (log, token). dataset.json describes the build that
-        committed last (a rebuild with changed params rewrites the rows it rebuilds and the metadata).
-        Raises DatasetFormatError if an ok row's shard is missing.
+        A scene's rows supersede every older commit of that scene (`fragments.visible_rows`); a scene
+        whose newest fragment already holds equal rows gets no new fragment (a rerun publishes nothing).
+        dataset.json describes the build that committed last. Raises DatasetFormatError if an ok row's
+        shard is missing, InvalidFrameError if rows repeat a (log, token) pair.
         """
-        meta_bytes = metadata_bytes(self.metadata)
-        meta_path = f"{self._path}/{METADATA_NAME}"
         for shard in sorted({row["shard"] for row in rows if row.get("status") == STATUS_OK}):
             if not self._fs.exists(shard_path(self._path, shard)):
                 raise DatasetFormatError(f"{shard_path(self._path, shard)}: shard of committed rows is missing")
@@ -227,7 +229,6 @@ class DatasetWriter:
             new = rows_to_table(rows, self._hist_len)
         except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
             raise InvalidFrameError(f"commit: rows do not fit the manifest columns: {exc}") from exc
-        existing = read_manifest(self.root) if self._fs.exists(f"{self._path}/{MANIFEST_NAME}") else None
-        table = merge(existing, new)
-        atomic_put(self._fs, meta_path, meta_bytes)
-        atomic_put(self._fs, f"{self._path}/{MANIFEST_NAME}", to_parquet_bytes(table))
+        check_unique(new)
+        atomic_put(self._fs, f"{self._path}/{METADATA_NAME}", metadata_bytes(self.metadata))
+        return publish_fragments(self._fs, self._path, ordered(new)) if rows else []

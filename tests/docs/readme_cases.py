@@ -4,7 +4,8 @@ against one shared build and gives what it promises.
 Extraction (generic, so new README lines are picked up without touching this test):
 - every line of a fenced ```bash block, its trailing `# comment` removed and split at ` ; `: each command
   starting with `nuplan-occ` or `occgen` is one case, run by bash in the workspace below (so
-  `$NUPLAN_DATA_ROOT` expands from the environment); other commands (`make ...`) are not run;
+  `$NUPLAN_DATA_ROOT` expands from the environment); other commands (`make ...`) are not run, nor
+  are lines holding ` ... ` (a sketch of options in the context of an earlier line);
 - every ```python block is one case, exec'd in the workspace; afterwards every top-level name bound to
   a sized object (a dataset, clips, a list) must be non-empty: a snippet that gives nothing fails;
 - a fenced block of any other language whose first line is `# <file>: ...` is written to the
@@ -66,7 +67,7 @@ def readme_cases(text: str) -> list[Case]:
         elif language == "bash":
             for line in body.splitlines():
                 for command in re.sub(r"\s+#.*$", "", line).split(" ; "):
-                    if command.strip().split(" ", 1)[0] in PROGRAMS:
+                    if command.strip().split(" ", 1)[0] in PROGRAMS and " ... " not in command:
                         cases.append(Case("command", command.strip()))
     return cases
 

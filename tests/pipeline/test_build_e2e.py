@@ -3,7 +3,6 @@ no work, resume after SIGKILL gives identical bytes, and Ray matches the local e
 
 from __future__ import annotations
 
-import hashlib
 import os
 import signal
 import subprocess
@@ -18,6 +17,7 @@ from nuplan_occ.dataset import open_dataset
 from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.pipeline.build import run_build
 from nuplan_occ.storage import read_manifest
+from nuplan_occ.storage.digest import content_digests
 from nuplan_occ.storage.validate import validate_dataset
 from nuplan_occ.torch import OccupancyDataset
 
@@ -27,9 +27,8 @@ pytestmark = pytest.mark.slow
 
 
 def tree_digest(root: Path) -> dict[str, str]:
-    """sha256 of every published file (shards, manifest, metadata), by relative path."""
-    files = [p for p in root.rglob("*") if p.is_file() and "work" not in p.relative_to(root).parts]
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(files)}
+    """sha256 of every published item (shards, visible manifest rows without commit ids, metadata)."""
+    return content_digests(str(root))
 
 
 def sweep_files(data_root: Path) -> tuple[Path, list]:
@@ -38,15 +37,10 @@ def sweep_files(data_root: Path) -> tuple[Path, list]:
         return db, list(log.frames)
 
 
-def test_build_end_to_end_default_method_with_bad_blobs(data_root, tmp_path):
+def test_build_end_to_end_default_method_with_bad_blobs(bad_blobs_build):
+    data_root, out, summary = bad_blobs_build.data_root, bad_blobs_build.out, bad_blobs_build.summary
+    corrupt, missing = bad_blobs_build.corrupt, bad_blobs_build.missing
     db, frames = sweep_files(data_root)
-    blobs = data_root / "nuplan-v1.1" / "sensor_blobs"
-    corrupt, missing = frames[2], frames[4]
-    (blobs / corrupt.filename).write_bytes(b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"
-                                           b"COUNT 1 1 1\nWIDTH 99\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 99\nDATA binary\n\x00\x01")
-    (blobs / missing.filename).unlink()
-    out = tmp_path / "out"
-    summary = run_build(data_root, str(out), build_params(fast=False))
 
     manifest = read_manifest(str(out)).to_pylist()
     assert [r["token"] for r in manifest] == [f.token for f in frames if f.index % 2 == 0]
@@ -113,10 +107,10 @@ def test_build_to_an_fsspec_url_matches_the_local_build(synthetic_root, referenc
     import fsspec
 
     url = "memory://nuplan-occ-test/out"
-    run_build(synthetic_root, url, build_params(), work_root=reference_build / "work")
-    fs = fsspec.filesystem("memory")
-    local = {k: v for k, v in tree_digest(reference_build).items()}
-    remote = {path.split("/out/", 1)[1]: hashlib.sha256(fs.cat_file(path)).hexdigest()
-              for path in fs.find("/nuplan-occ-test/out")}
-    assert remote == local
+    summary = run_build(synthetic_root, url, build_params(), work_root=reference_build / "work")
+    # the default work policy dropped the grids and point clouds; the kept poses, boxes and surfaces are reused
+    assert {p.name for p in (reference_build / "work").glob("*/*/*")} == {"register", "track", "reconstruct", "write"}
+    assert "voxelize" in summary.stage_seconds and not {"register", "track", "reconstruct"} & set(summary.stage_seconds)
+    assert content_digests(url) == tree_digest(reference_build)
+    assert any("/manifest/scenes/" in path for path in fsspec.filesystem("memory").find("/nuplan-occ-test/out"))
     assert len(open_dataset(url)) == len(open_dataset(str(reference_build)))

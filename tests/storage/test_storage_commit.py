@@ -10,6 +10,7 @@ import pytest
 from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage import read_metadata, DatasetFormatError, DatasetWriter, read_manifest, shard_exists, validate_dataset
+from nuplan_occ.storage.digest import content_digests
 from nuplan_occ.storage.synthetic import synthetic_log
 
 SMALL = GridSpec(-4.0, 4.0, -4.0, 4.0, -1.0, 1.0, 0.25)
@@ -34,8 +35,8 @@ def _build(root: Path, batches: list[list[str]]) -> None:
         writer.commit([row for log in batch for row in writer.write_shard(log, logs[log])])
 
 
-def _files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+def _files(root: Path) -> dict[str, str]:
+    return content_digests(str(root))
 
 
 def test_outputs_are_byte_identical_across_runs_and_commit_batching(tmp_path):
@@ -43,8 +44,10 @@ def test_outputs_are_byte_identical_across_runs_and_commit_batching(tmp_path):
     _build(tmp_path / "two", [["log-a", "log-b"]])
     _build(tmp_path / "batched", [["log-b"], ["log-a"]])
     one = _files(tmp_path / "one")
-    assert set(one) == {"dataset.json", "manifest.parquet", "shards/log-a.tar", "shards/log-b.tar"}
+    assert set(one) == {"dataset.json", "manifest", "shards/log-a.tar", "shards/log-b.tar"}
     assert one == _files(tmp_path / "two") == _files(tmp_path / "batched")
+    fragments = sorted(p.relative_to(tmp_path / "batched").parts[:3] for p in (tmp_path / "batched").rglob("*.parquet"))
+    assert fragments == [("manifest", "scenes", "log-a")] + [("manifest", "scenes", "log-b")] * 2  # one per scene
 
 
 def test_manifest_sorted_and_failed_rows_kept(tmp_path):
@@ -83,13 +86,13 @@ def test_crash_during_publish_leaves_temp_only_and_rerun_is_identical(tmp_path, 
     monkeypatch.undo()
     leftovers = [p.name for p in (root / "shards").iterdir()]
     assert "log-b.tar" not in leftovers and any(name.startswith(".log-b.tar.tmp-") for name in leftovers)
-    (root / ".manifest.parquet.tmp-1-deadbeef").write_bytes(b"half a parquet file")
+    fragment_dir = next((root / "manifest" / "scenes" / "log-a").iterdir())
+    (fragment_dir / ".1796162835093246242-11ecdfd64da418a0.parquet.tmp-1-deadbeef").write_bytes(b"half a parquet file")
     assert len(open_dataset(str(root))) == 4
     assert validate_dataset(str(root)) == []
 
     _build(root, [["log-a", "log-b"]])  # rerun
-    rerun = {k: v for k, v in _files(root).items() if ".tmp-" not in k}
-    assert rerun == _files(tmp_path / "clean")
+    assert _files(root) == _files(tmp_path / "clean")
 
 
 def test_commit_replaces_rows_of_equal_log_and_token(tmp_path):

@@ -44,8 +44,13 @@ def test_manifest_schema_lists_every_column():
     assert schemas.load("manifest")["required"] == base_schema(15).names
 
 
+def _fragment(root):
+    """The first scene fragment of the fixture's manifest."""
+    return sorted(root.glob("manifest/scenes/*/*/*.parquet"))[0]
+
+
 def test_schema_violation_is_reported(root):
-    path = root / "manifest.parquet"
+    path = _fragment(root)
     table = pq.read_table(path)
     status = table["status"].to_pylist()
     status[0] = "maybe"
@@ -72,11 +77,12 @@ def test_corrupted_member_raises_checksum_error_naming_the_shard(root):
 
 
 def test_missing_shard_and_bad_offsets_are_reported(root):
-    table = pq.read_table(root / "manifest.parquet")
+    path = _fragment(root)
+    table = pq.read_table(path)
     offsets = table["mask_camera_offset"].to_pylist()
     offsets[0] += 512
     pq.write_table(table.set_column(table.schema.get_field_index("mask_camera_offset"), "mask_camera_offset",
-                                    [offsets]), root / "manifest.parquet")
+                                    [offsets]), path)
     assert any("mask_camera" in p for p in validate_dataset(str(root)))
     (root / "shards" / "2021.06" / "log7.tar").unlink()
     problems = validate_dataset(str(root))
@@ -91,5 +97,5 @@ def test_unreadable_files_are_reported(tmp_path, root):
     del meta["grid"]
     (root / "dataset.json").write_text(json.dumps(meta))
     assert validate_dataset(str(root)) == [f"{root}/dataset.json: <root>: 'grid' is a required property"]
-    (root / "manifest.parquet").write_bytes(b"not parquet")
-    assert "not a readable Parquet file" in validate_dataset(str(root))[0]
+    _fragment(root).write_bytes(b"not parquet")
+    assert f"{_fragment(root)}: not a readable Parquet file" in validate_dataset(str(root))[0]

@@ -1,0 +1,55 @@
+"""`compact(root)`: fold the manifest's files into one large Parquet file of its visible rows.
+
+Steps: list the manifest files (a snapshot), read their visible rows in manifest order (commit ids
+kept), publish them atomically as `manifest/compacted/<newest commit id in them>.parquet`, then delete
+the snapshot's files. Readers see the same rows before, during and after: while both the output and
+its inputs exist, resolution counts each commit once (`fragments.visible_rows`).
+
+Safe while writers run: a fragment committed after the snapshot is not read and not deleted, and its
+commit id is newer than every commit it supersedes, whether those sit in fragments or in the compacted
+file (a writer's commit id is raised past the compacted files' names). Run one compaction at a time.
+A compacted pre-fragment dataset (manifest.parquet) can no longer be read by versions before fragments.
+"""
+
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass
+
+import pyarrow.compute as pc
+
+from nuplan_occ.storage.fragments import COMMIT_COLUMN, COMPACTED_DIR
+from nuplan_occ.storage.fsio import atomic_put, resolve
+from nuplan_occ.storage.manifest import to_parquet_bytes
+from nuplan_occ.storage.manifest_reader import ManifestIndex
+
+COMPACTED_ROW_GROUP_SIZE = 16384
+
+
+@dataclass
+class CompactionResult:
+    """files_before: manifest files folded; rows_before / rows_after: rows in them / visible rows kept."""
+
+    files_before: int
+    rows_before: int
+    rows_after: int
+    output: str
+
+
+def compact(root: str, row_group_size: int = COMPACTED_ROW_GROUP_SIZE) -> CompactionResult:
+    """Fold the manifest of `root` (see module docstring). row_group_size: rows per Parquet row group of
+    the output (a random frame read costs one row group; see the manifest bench)."""
+    fs, path = resolve(root)
+    index = ManifestIndex(root)
+    table = index.table()
+    rows_before = int(index.file_row_counts.sum())
+    newest = pc.max(table[COMMIT_COLUMN]).as_py() if table.num_rows else None
+    name = newest or f"{0:019d}-{secrets.token_hex(8)}"
+    output = f"{path}/{COMPACTED_DIR}/{name}.parquet"
+    if index.paths == [output]:
+        return CompactionResult(1, rows_before, table.num_rows, output)
+    atomic_put(fs, output, to_parquet_bytes(table, row_group_size))
+    for folded in index.paths:
+        if folded != output:
+            fs.rm_file(folded)
+    return CompactionResult(len(index.paths), rows_before, table.num_rows, output)
