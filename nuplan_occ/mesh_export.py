@@ -76,7 +76,7 @@ def _scene_tasks(root: str, data_root: Path, maps_root: str | None) -> list:
     from stages import PIPELINE
 
     params = apply_overrides(default_params(PIPELINE), read_metadata(root)["params"], f"{root}/dataset.json")
-    logs = sorted(set(open_dataset(root).manifest["log"].to_pylist()))
+    logs = sorted(set(open_dataset(root).column("log").to_pylist()))
     dbs = resolve_logs(data_root, split=None, log_names=logs)
     return plan_tasks(dbs, Path(data_root), maps_root_for(data_root, maps_root), root, default_work_root(root),
                       params)
@@ -90,7 +90,7 @@ def export_meshes(root: str, dest: str | Path, data_root: str | Path, maps_root:
     from stages import PIPELINE
 
     ds = open_dataset(root)
-    scenes = set(ds.manifest["scene_token"].to_pylist())
+    scenes = set(ds.column("scene_token").to_pylist())
     if token is not None:
         scenes = {ds.get(ds.index_of_token(token), keys=())["scene_token"]}
     dest = Path(dest)
