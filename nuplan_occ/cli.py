@@ -8,8 +8,10 @@ from typing import List, Optional
 import typer
 from rich.console import Console
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Dense semantic occupancy grids from nuPlan logs (Nuplan-Occ style).")
+from nuplan_occ.cli_errors import CliApp
+
+app = CliApp("nuplan-occ", add_completion=False, no_args_is_help=True,
+             help="Dense semantic occupancy grids from nuPlan logs (Nuplan-Occ style).")
 console = Console(stderr=True)
 
 
