@@ -196,6 +196,50 @@ def run_scale_bench(out_dir: Path, seconds: list[float], baseline: str | None, l
     return report
 
 
+def bench_kiss_icp(data_root: Path, sweeps: int, threads: tuple[int, ...] = (1, 0)) -> dict[str, Any]:
+    """KISS-ICP odometry (the declared dependency) on the first `sweeps` merged sweeps of the scale log, ego
+    frame, voxel 1 m: seconds per sweep and whether two runs give bit-identical poses, per thread count
+    (0 = all cores); plus the drift of its trajectory from the logged poses (m, over the run)."""
+    import numpy as np
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.kiss_icp import KissICP
+
+    from nuplan_occ.geometry import invert_transform
+    from nuplan_occ.io.data_root import resolve_logs, sensor_root_for
+    from nuplan_occ.io.reader import NuplanLog
+
+    db = resolve_logs(data_root)[0]
+    with NuplanLog(db, sensor_root_for(db, data_root)) as log:
+        frames = log.frames[:sweeps]
+        T_ego_from_lidar = log.lidar.T_ego_from_lidar
+        clouds = [log.load_points(f).transformed(T_ego_from_lidar, "ego").xyz for f in frames]
+        logged = np.stack([log.frame_pose(f) for f in frames])
+    out: dict[str, Any] = {"sweeps": len(clouds), "points_per_sweep": float(np.mean([len(c) for c in clouds]))}
+    for count in threads:
+        runs = []
+        for _ in range(2):
+            config = KISSConfig()
+            config.mapping.voxel_size = 1.0
+            config.data.deskew = False
+            config.registration.max_num_threads = count
+            odometry = KissICP(config)
+            started = time.process_time() if count == 1 else time.perf_counter()
+            poses = []
+            for cloud in clouds:
+                odometry.register_frame(np.ascontiguousarray(cloud, dtype=np.float64), np.zeros(0))
+                poses.append(odometry.last_pose.copy())
+            elapsed = (time.process_time() if count == 1 else time.perf_counter()) - started
+            runs.append((np.stack(poses), elapsed / len(clouds)))
+        logged_rel = np.einsum("ij,njk->nik", invert_transform(logged[0]), logged)
+        out[f"threads_{count}"] = {
+            "seconds_per_sweep": min(r[1] for r in runs),
+            "identical_runs": bool(np.array_equal(runs[0][0], runs[1][0])),
+            "max_pose_difference_m": float(np.abs(runs[0][0][:, :3, 3] - runs[1][0][:, :3, 3]).max()),
+            "end_offset_from_log_m": float(np.linalg.norm(runs[0][0][-1, :3, 3] - logged_rel[-1, :3, 3])),
+        }
+    return out
+
+
 def write_scale_report(report: dict, out_dir: Path) -> None:
     """bench/report-scale.json and bench/report-scale.md."""
     (out_dir / "report-scale.json").write_text(json.dumps(report, indent=2, default=float))
@@ -238,6 +282,14 @@ def render_scale_markdown(report: dict) -> str:
                                r["quality"][m]["trail_voxels_total"], r["quality"][m]["ground_hole_rate"],
                                *[r["quality"][m]["per_class_iou"].get(c, float("nan")) for c in classes]]
                               for r in rows for m in ("ours", "paper_method")]), ""]
+    if report.get("kiss_icp"):
+        k = report["kiss_icp"]
+        parts += [f"## KISS-ICP odometry as a registration front end ({k['sweeps']} sweeps of the 5 s log, "
+                  f"{k['points_per_sweep']:.0f} points each, voxel 1 m)", "",
+                  _table(["threads (0 = all)", "s per sweep", "two runs identical", "max difference m",
+                          "end offset from log m"],
+                         [[name.split("_")[1], v["seconds_per_sweep"], v["identical_runs"], v["max_pose_difference_m"],
+                           v["end_offset_from_log_m"]] for name, v in k.items() if name.startswith("threads_")]), ""]
     if report.get("recorded_baseline"):
         b = report["recorded_baseline"]
         parts += ["## Recorded baseline (not rerun here)", "", b["text"], ""]
@@ -267,10 +319,15 @@ def main(argv: list[str] | None = None) -> None:
                         help="longest scene the baseline builds (its memory grows with scene length)")
     parser.add_argument("--limit-mb", type=float, default=10_000.0, help="kill a build whose RSS passes this")
     parser.add_argument("--quality-stride", type=int, default=2, help="measure quality on every n-th frame")
+    parser.add_argument("--kiss-sweeps", type=int, default=60, help="sweeps of the KISS-ICP measurement (0 = skip)")
     args = parser.parse_args(argv)
+    if args.kiss_sweeps:
+        kiss = bench_kiss_icp(scale_data(args.out / "scale", 5.0), args.kiss_sweeps)
     report = run_scale_bench(args.out, args.seconds, args.baseline, args.limit_mb, args.quality_stride,
                              args.baseline_max_seconds)
     report["recorded_baseline"] = RECORDED_BASELINE
+    if args.kiss_sweeps:
+        report["kiss_icp"] = kiss
     write_scale_report(report, args.out)
     print((args.out / "report-scale.md").read_text())
 

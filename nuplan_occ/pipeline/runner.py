@@ -63,7 +63,8 @@ def stage_keys(task: SceneTask, pipeline: list) -> dict[str, str]:
 def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events: EventSink | None = None,
                result: SceneResult | None = None) -> dict[str, Any]:
     """The `wanted` artifacts of the scene. Works backwards from them: a stage runs only when its
-    outputs are not in the cache, so a finished scene is answered from the cache without reading input."""
+    outputs are not in the cache, so a finished scene is answered from the cache without reading input.
+    An artifact is dropped from memory once every stage that reads it is done (unless it is wanted)."""
     cache = StageCache(task.work_dir)
     keys = stage_keys(task, pipeline)
     frame_stages = [stage for stage in pipeline if stage.per_frame]
@@ -72,6 +73,18 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
     if frame_stages:
         producer[STREAM_OUTPUT] = frame_stages[-1]
     artifacts: dict[str, Any] = {"task": task}
+    group = {stage.name: (frame_stages[-1].name if stage.per_frame else stage.name) for stage in pipeline}
+    readers: dict[str, set[str]] = {}
+    for stage in pipeline:
+        for name in stage.inputs:
+            readers.setdefault(name, set()).add(group[stage.name])
+    done: set[str] = set()
+
+    def finished(stage) -> None:
+        done.add(stage.name)
+        for name in {n for s in pipeline if group[s.name] == stage.name for n in s.inputs}:
+            if name not in wanted and readers[name] <= done:
+                artifacts.pop(name, None)
 
     def obtain(name: str) -> Any:
         if name not in artifacts:
@@ -89,6 +102,7 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
     def run_or_reuse(stage) -> dict[str, Any]:
         outputs = cache.get(stage.name, keys[stage.name]) if stage.cache else None
         if outputs is not None and _outputs_still_valid(stage.name, outputs, task):
+            finished(stage)
             return outputs
         if stage.per_frame:
             outputs = {STREAM_OUTPUT: stream_frames()}
@@ -99,10 +113,12 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
             started = time.perf_counter()
             outputs = stage.run(inputs, params_of(stage))
             timed(stage, time.perf_counter() - started)
+            del inputs
         if result is not None and stage.cache:
             result.computed.append(stage.name)
         if stage.cache:
             cache.put(stage.name, keys[stage.name], outputs)
+        finished(stage)
         return outputs
 
     def stream_frames() -> list[dict]:
@@ -151,8 +167,8 @@ def run_scene(task: SceneTask, events: EventSink | None = None) -> SceneResult:
 
     result = SceneResult(task.log_name, task.scene_name)
     try:
-        artifacts = run_stages(task, PIPELINE, (STREAM_OUTPUT,), events, result)
-        result.rows = artifacts[STREAM_OUTPUT]
+        artifacts = run_stages(task, PIPELINE, ("rows",), events, result)
+        result.rows = artifacts["rows"]
     except Exception as exc:  # a scene failure is recorded, never fatal to the build
         result.error = f"{type(exc).__name__}: {exc}"
         result.rows = []
