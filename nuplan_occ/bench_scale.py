@@ -293,6 +293,8 @@ def render_scale_markdown(report: dict) -> str:
     if report.get("recorded_baseline"):
         b = report["recorded_baseline"]
         parts += ["## Recorded baseline (not rerun here)", "", b["text"], ""]
+    if report.get("notes"):
+        parts += ["## Notes", "", *[f"- {note}" for note in report["notes"]], ""]
     return "\n".join(parts)
 
 
