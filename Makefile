@@ -4,7 +4,7 @@ SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libxrender1 libgomp1
 DEMO_OUT ?= demo_out
 
-.PHONY: setup system-packages demo test bench bench-manifest clean
+.PHONY: setup system-packages demo test bench bench-manifest bench-scale clean
 
 setup: .setup.stamp
 
@@ -28,6 +28,10 @@ bench: setup
 
 bench-manifest: setup
 	$(PYTHON) -m nuplan_occ.bench_manifest --out bench
+
+# Real-scale yardstick (issue #16): city logs of one 5 / 10 / 20 s scene, one worker; bench/report-scale.{json,md}.
+bench-scale: setup
+	nice -n 5 $(PYTHON) -m nuplan_occ.bench_scale
 
 clean:
 	rm -rf $(DEMO_OUT) bench/work bench/data bench/manifest_work .setup.stamp

@@ -75,8 +75,8 @@ def scene_artifacts(data_root: Path, out: Path) -> list[dict[str, Any]]:
 
     params = default_params(PIPELINE)
     tasks = plan_tasks(resolve_logs(data_root), data_root, data_root / "maps", str(out), default_work_root(str(out)), params)
-    wanted = ("scene", "registration", "object_boxes", "final_semantics", "grids", "background_surface",
-              "background_aggregate", "objects", "object_surfaces")
+    wanted = ("scene", "registration", "object_boxes", "background_surface", "background_aggregate", "objects",
+              "object_surfaces")
     return [run_stages(task, PIPELINE, wanted) for task in tasks]
 
 
@@ -136,11 +136,13 @@ def paper_method_frame(artifacts: dict, token: str, position: int, layers) -> np
     return paper_column_stamp(semantics, np.isin(bev, [ROAD, ROAD_LINE]), bev == ROAD_LINE, DEFAULT_GRID)
 
 
-def bench_quality(data_root: Path, out: Path) -> dict[str, Any]:
-    """Built frames vs truth inside the truth's mask_lidar; the paper's method on the same input."""
+def bench_quality(data_root: Path, out: Path, frame_stride: int = 1) -> dict[str, Any]:
+    """Built frames (read from the dataset at `out`) vs truth inside the truth's mask_lidar; the paper's
+    method on the same input. frame_stride: measure every n-th built frame of a scene."""
     from nuplan_occ.io.maps import LABEL_LAYERS, NuplanMap
 
     truth = open_dataset(str(data_root / "truth"))
+    built = open_dataset(str(out))
     ours, paper, trails, paper_trails, holes, paper_holes = [], [], [], [], [], []
     for artifacts in scene_artifacts(data_root, out):
         scene = artifacts["scene"]
@@ -149,7 +151,10 @@ def bench_quality(data_root: Path, out: Path) -> dict[str, Any]:
             center = artifacts["registration"].poses[0][:2, 3]
             layers = NuplanMap(scene.map_path).layers_in_window(center, 150.0, LABEL_LAYERS)
         position_of = {s.token: i for i, s in enumerate(scene.sweeps)}
-        for token, semantics in artifacts["final_semantics"].items():
+        tokens = [s.token for s in scene.sweeps if s.is_output and s.cloud is not None][::max(1, frame_stride)]
+        for token in tokens:
+            frame = built.get(built.index_of_token(token), keys=("semantics", "instance"))
+            semantics, objects = frame["semantics"], frame["instance"] > 0
             reference = truth[truth.index_of_token(token)]
             mask = reference["mask_lidar"]
             baseline = paper_method_frame(artifacts, token, position_of[token], layers)
@@ -157,8 +162,8 @@ def bench_quality(data_root: Path, out: Path) -> dict[str, Any]:
             paper.append(occupancy_metrics(baseline, reference["semantics"], mask))
             swept = swept_mask(scene, artifacts["registration"].poses[position_of[token]])
             swept &= reference["semantics"] == 0  # truly empty now: anything built there is a trail
-            trails.append(trail_count(semantics, swept, artifacts["grids"][token].instance > 0))
-            paper_trails.append(trail_count(baseline, swept, artifacts["grids"][token].instance > 0))
+            trails.append(trail_count(semantics, swept, objects))
+            paper_trails.append(trail_count(baseline, swept, objects))
             road = np.isin(reference["semantics"], [ROAD, ROAD_LINE])
             ground_index = np.argmax(road, axis=2)
             observed = np.take_along_axis(mask, ground_index[:, :, None], axis=2)[:, :, 0]

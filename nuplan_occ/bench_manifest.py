@@ -4,11 +4,12 @@ Writes bench/report-manifest.json and bench/report-manifest.md.
 Sections:
 - commit: time of one scene commit (190 rows) into a manifest of 1 k and 19 k simulated scenes
   (190 rows each, one shard and so one fragment per scene), median over repeated commits;
-- open: `open_dataset` over 3.6 M simulated rows (19 k fragments, then after `compact`): wall time and
-  peak RSS of a fresh process, token lookup and random frame-identity reads, and the clip index of
-  `OccupancyDataset`; compaction time;
+- open: `open_dataset` over the 1 k-scene manifest as fragments and after `compact` (with its time),
+  and over 3.6 M simulated rows in one compacted file: wall time and peak RSS of a fresh process, token
+  lookup and random frame-identity reads, and the clip index of `OccupancyDataset` at 3.6 M rows;
 - work: a real build of a synthetic log with `--keep-work all`: cache bytes per output frame of every
-  stage, and the work folder per frame under each policy, next to the dataset's own bytes per frame.
+  stage (over the published scenes), and the work folder per frame under each policy, next to the
+  dataset's own bytes per frame (shards, manifest, metadata).
 Rows are simulated (`storage.simulated_manifest`); no shards exist for them.
 """
 
@@ -35,6 +36,8 @@ from nuplan_occ.storage.simulated_manifest import simulated_manifest
 FRAMES_PER_SCENE = 190
 SCENE_COUNTS = (1_000, 19_000)
 COMMITS_PER_POINT = 15
+
+COMPACTED_ROWS_NOTE = "16 k-row row groups"
 
 OPEN_PROBE = r"""
 import json, resource, sys, time
@@ -66,8 +69,15 @@ print(json.dumps({"clips": len(clips), "index_s": time.perf_counter() - t0,
 """
 
 
+PROBE_MEMORY_LIMIT = 4 << 30  # address-space cap of a probe, so a runaway reader fails alone
+
+
 def _probe(script: str, root: Path) -> dict[str, Any]:
-    done = subprocess.run([sys.executable, "-c", script, str(root)], capture_output=True, text=True, check=True)
+    """Run a probe in a fresh process; its figures, or {"error": ...} when it failed."""
+    guarded = f"import resource; resource.setrlimit(resource.RLIMIT_AS, ({PROBE_MEMORY_LIMIT}, {PROBE_MEMORY_LIMIT}))\n" + script
+    done = subprocess.run([sys.executable, "-c", guarded, str(root)], capture_output=True, text=True)
+    if done.returncode != 0:
+        return {"error": (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1][:300]}
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -98,31 +108,41 @@ def _commit_times(root: Path, n: int, seed: int) -> list[float]:
     return times
 
 
-def bench_commit_and_open(work: Path, scene_counts: tuple[int, ...] = SCENE_COUNTS) -> dict[str, Any]:
-    from nuplan_occ.storage.compact import compact
+def bench_commit_and_open(work: Path, scene_counts: tuple[int, ...] = SCENE_COUNTS, reuse: bool = False) -> dict[str, Any]:
+    """Commit time at each manifest size (one fragment per scene; reuse: keep an existing population),
+    compaction of the smallest, and opening a compacted manifest of the largest (written directly)."""
+    from nuplan_occ.storage.compact import COMPACTED_ROW_GROUP_SIZE, compact
 
-    root = work / "manifest_scale"
-    shutil.rmtree(root, ignore_errors=True)
-    table = simulated_manifest(scene_counts[-1], FRAMES_PER_SCENE)
-    out: dict[str, Any] = {"frames_per_scene": FRAMES_PER_SCENE, "commit": {}}
-    done = 0
+    table = simulated_manifest(max(scene_counts), FRAMES_PER_SCENE)
+    out: dict[str, Any] = {"frames_per_scene": FRAMES_PER_SCENE, "commit": {}, "scene_counts": list(scene_counts)}
     for n in scene_counts:
-        _populate(root, table, n, done)
-        done = n
+        root = work / f"manifest_scale_{n}"
+        if not (reuse and root.exists()):
+            shutil.rmtree(root, ignore_errors=True)
+            _populate(root, table, n, 0)
         times = _commit_times(root, n, seed=n)
         out["commit"][str(n)] = {"scenes": n, "rows": n * FRAMES_PER_SCENE, "median_s": statistics.median(times),
                                  "max_s": max(times)}
-        for k in range(COMMITS_PER_POINT):  # keep the population at exactly n scenes for the next point
+        for k in range(COMMITS_PER_POINT):  # keep the population at exactly n scenes
             shutil.rmtree(Path(shard_dir(str(root), f"new-{n}-{k}")), ignore_errors=True)
-    small, large = (out["commit"][str(n)]["median_s"] for n in scene_counts)
+    small, large = (out["commit"][str(n)]["median_s"] for n in (scene_counts[0], scene_counts[-1]))
     out["commit"]["ratio_19k_to_1k"] = large / small
-    out["scene_counts"] = list(scene_counts)
-    del table
-    out["open_fragments"] = _probe(OPEN_PROBE, root)
+    smallest = work / f"manifest_scale_{scene_counts[0]}"
+    out["open_fragments"] = _probe(OPEN_PROBE, smallest)
     started = time.perf_counter()
-    result = compact(str(root))
+    result = compact(str(smallest))
     out["compact"] = {"seconds": time.perf_counter() - started, "files_before": result.files_before,
                       "rows": result.rows_after, "bytes": Path(result.output).stat().st_size}
+    out["open_compacted_small"] = _probe(OPEN_PROBE, smallest)
+    shutil.rmtree(smallest, ignore_errors=True)
+    root = work / "manifest_compacted"
+    shutil.rmtree(root, ignore_errors=True)
+    (root / "manifest" / "compacted").mkdir(parents=True)
+    newest = table["commit_id"][table.num_rows - 1].as_py()
+    pq.write_table(table, root / "manifest" / "compacted" / f"{newest}.parquet", compression="zstd",
+                   row_group_size=COMPACTED_ROW_GROUP_SIZE)
+    DatasetWriter(str(root), {"params": {}}).commit([])
+    del table
     out["open_compacted"] = _probe(OPEN_PROBE, root)
     out["clips_compacted"] = _probe(CLIPS_PROBE, root)
     shutil.rmtree(root, ignore_errors=True)
@@ -133,28 +153,42 @@ def _tree_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.exists() else 0
 
 
-def bench_work(work: Path, seconds: float) -> dict[str, Any]:
-    """A real build with every cache entry kept; bytes per output frame per stage and per policy."""
+def bench_work(work: Path, seconds: float, reuse: bool = False) -> dict[str, Any]:
+    """A real build with every cache entry kept (reuse: measure the build already in `work`, e.g. one
+    stopped early); bytes per output frame per stage and per policy, over the published scenes."""
     from nuplan_occ.pipeline.build import run_build
     from nuplan_occ.pipeline.params import default_params
-    from nuplan_occ.pipeline.publish import DEFAULT_KEPT_STAGES
     from nuplan_occ.synth.generate import synthesize
     from stages import PIPELINE
 
-    data = work / "work_data"
-    if not (data / "nuplan-v1.1").exists():
-        synthesize(data, logs=1, seconds=seconds, seed=0, preset="small")
-    out = work / "work_build"
-    shutil.rmtree(out, ignore_errors=True)
-    summary = run_build(data, str(out), default_params(PIPELINE), keep_work="all")
-    frames = summary.frames_built + summary.frames_failed
+    data, out = work / "work_data", work / "work_build"
+    wall = None
+    if not (reuse and out.exists()):
+        if not (data / "nuplan-v1.1").exists():
+            synthesize(data, logs=1, seconds=seconds, seed=0, preset="small")
+        shutil.rmtree(out, ignore_errors=True)
+        wall = run_build(data, str(out), default_params(PIPELINE), keep_work="all").wall_seconds
+    return {"log_seconds": seconds, "build_wall_s": wall, **measure_work(out)}
+
+
+def measure_work(out: Path) -> dict[str, Any]:
+    """Stage cache bytes per output frame of the published scenes of a `--keep-work all` build, the
+    work folder per frame under each policy, and the dataset's own bytes per frame."""
+    from nuplan_occ.pipeline.publish import DEFAULT_KEPT_STAGES
+    from nuplan_occ.storage import read_manifest
+
+    table = read_manifest(str(out), ["log", "scene_name", "shard"])
+    scenes = sorted(set(zip(table["log"].to_pylist(), table["scene_name"].to_pylist())))
+    frames = table.num_rows
     per_stage: dict[str, int] = {}
-    for stage_dir in (out / "work").glob("*/*/*"):
-        per_stage[stage_dir.name] = per_stage.get(stage_dir.name, 0) + _tree_bytes(stage_dir)
-    dataset_bytes = _tree_bytes(out) - _tree_bytes(out / "work")
+    for log, scene in scenes:
+        for stage_dir in (out / "work" / log / scene).iterdir():
+            per_stage[stage_dir.name] = per_stage.get(stage_dir.name, 0) + _tree_bytes(stage_dir)
+    shards = sum((out / "shards" / f"{key}.tar").stat().st_size for key in set(table["shard"].to_pylist()))
+    dataset_bytes = shards + _tree_bytes(out / "manifest") + (out / "dataset.json").stat().st_size
     policies = {"all": sum(per_stage.values()),
                 "default": sum(v for k, v in per_stage.items() if k in DEFAULT_KEPT_STAGES), "none": 0}
-    return {"log_seconds": seconds, "frames": frames, "build_wall_s": summary.wall_seconds,
+    return {"scenes": len(scenes), "frames": frames,
             "stage_bytes_per_frame": {k: v / frames for k, v in sorted(per_stage.items())},
             "work_bytes_per_frame": {k: v / frames for k, v in policies.items()},
             "dataset_bytes_per_frame": dataset_bytes / frames}
@@ -175,19 +209,30 @@ def render_markdown(report: dict[str, Any]) -> str:
                   "## Opening 3.6 M rows (fresh process)", "",
                   "| manifest | rows | open s | peak RSS MB | token lookup ms | frame identity ms |",
                   "|---|---:|---:|---:|---:|---:|"]
-        for name, label in (("open_fragments", f"{c[str(scale['scene_counts'][-1])]['scenes']:,} fragments"),
+        small = c[str(scale["scene_counts"][0])]
+        for name, label in (("open_fragments", f"{small['scenes']:,} fragments"),
+                            ("open_compacted_small", "the same, compacted (1 file)"),
                             ("open_compacted", "compacted (1 file)")):
             o = scale[name]
+            if "error" in o:
+                lines.append(f"| {label} | 3.6 M | failed: {o['error']} | | | |")
+                continue
             lines.append(f"| {label} | {o['rows']:,} | {o['open_s']:.2f} | {o['peak_rss_mb']:.0f} | "
                          f"{o['token_lookup_ms']:.1f} | {o['identity_read_ms']:.1f} |")
         k, cl = scale["compact"], scale["clips_compacted"]
-        lines += ["", f"Compaction of {k['files_before']:,} files into one ({k['rows']:,} rows, "
-                  f"{k['bytes'] / 1e6:.0f} MB): {k['seconds']:.1f} s. `OccupancyDataset(clip_len=8, stride=4, "
-                  f"subset='spatial')` index from columns: {cl['clips']:,} clips in {cl['index_s']:.2f} s, peak RSS "
-                  f"{cl['peak_rss_mb']:.0f} MB ({cl['rss_after_torch_import_mb']:.0f} MB after the imports).", ""]
+        clips = (f"{cl['clips']:,} clips in {cl['index_s']:.2f} s, peak RSS {cl['peak_rss_mb']:.0f} MB "
+                 f"({cl['rss_after_torch_import_mb']:.0f} MB after the imports)") if "error" not in cl else f"failed: {cl['error']}"
+        lines += ["", f"`nuplan-occ compact` of {k['files_before']:,} fragments into one file ({k['rows']:,} rows, "
+                  f"{k['bytes'] / 1e6:.0f} MB): {k['seconds']:.1f} s. The 3.6 M-row compacted file is written by "
+                  f"the bench directly (same layout, {COMPACTED_ROWS_NOTE}). `OccupancyDataset(clip_len=8, stride=4, "
+                  f"subset='spatial')` index from columns at 3.6 M rows: {clips}. Open times exclude imports; peak RSS "
+                  "is the probe's ru_maxrss, which on Linux keeps the bench parent's resident set at fork (the "
+                  "simulated 3.6 M-row table), so these are upper bounds, not the reader's own; probes are capped "
+                  f"at {PROBE_MEMORY_LIMIT >> 30} GB of address space.", ""]
     w = report.get("work")
     if w:
-        lines += [f"## Work folder per output frame (real build, {w['frames']} frames, default params)", "",
+        lines += [f"## Work folder per output frame (real build with default params: {w['frames']} frames of "
+                  f"{w['scenes']} published scenes)", "",
                   "| stage | cache bytes / frame |", "|---|---:|"]
         lines += [f"| {k} | {v / 1e3:,.0f} KB |" for k, v in w["stage_bytes_per_frame"].items()]
         lines += ["", "| --keep-work | work bytes / frame |", "|---|---:|"]
@@ -202,6 +247,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--only", choices=["scale", "work"], default=None)
     parser.add_argument("--scenes", default=",".join(map(str, SCENE_COUNTS)),
                         help="Manifest sizes (scenes of 190 rows) of the commit points; the last one is opened.")
+    parser.add_argument("--reuse-build", action="store_true",
+                        help="Reuse the simulated manifests and the work build already under --out.")
     parser.add_argument("--log-seconds", type=float, default=2.0, help="Synthetic log length of the work section.")
     args = parser.parse_args(argv)
     work = args.out / "manifest_work"
@@ -210,9 +257,9 @@ def main(argv: list[str] | None = None) -> None:
     report = json.loads(path.read_text()) if path.exists() else {}
     report.update({"software": __version__, "machine": f"{platform.machine()}, {platform.python_version()}"})
     if args.only in (None, "scale"):
-        report["scale"] = bench_commit_and_open(work, tuple(int(n) for n in args.scenes.split(",")))
+        report["scale"] = bench_commit_and_open(work, tuple(int(n) for n in args.scenes.split(",")), args.reuse_build)
     if args.only in (None, "work"):
-        report["work"] = bench_work(work, args.log_seconds)
+        report["work"] = bench_work(work, args.log_seconds, args.reuse_build)
     path.write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
     (args.out / "report-manifest.md").write_text(render_markdown(report))
     print(render_markdown(report))

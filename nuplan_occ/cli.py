@@ -8,8 +8,10 @@ from typing import List, Optional
 import typer
 from rich.console import Console
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Dense semantic occupancy grids from nuPlan logs (Nuplan-Occ style).")
+from nuplan_occ.cli_errors import CliApp
+
+app = CliApp("nuplan-occ", add_completion=False, no_args_is_help=True,
+             help="Dense semantic occupancy grids from nuPlan logs (Nuplan-Occ style).")
 console = Console(stderr=True)
 
 
@@ -73,13 +75,17 @@ def synth(
     seconds: float = typer.Option(10.0, help="Seconds per log."),
     seed: int = typer.Option(0, help="Random seed (same seed, same bytes)."),
     preset: str = typer.Option("small", help="small | city | small_objects"),
+    scene_seconds: Optional[float] = typer.Option(None, help="Scene length (default: the preset's, >= 5 scenes "
+                                                  "per log); = --seconds makes one scene span the log."),
+    truth_rate: float = typer.Option(20.0, help="Truth frames per second (20 / n)."),
     preview: Optional[Path] = typer.Option(None, help="Write a PNG of one sweep over the truth grid."),
 ) -> None:
     """Write synthetic nuPlan logs from procedural worlds, with exact occupancy truth."""
     from nuplan_occ.synth.generate import synthesize
     from nuplan_occ.synth.preview import render_preview
 
-    synthesize(out_root, logs=logs, seconds=seconds, seed=seed, preset=preset, progress=console.log)
+    synthesize(out_root, logs=logs, seconds=seconds, seed=seed, preset=preset, progress=console.log,
+               scene_seconds=scene_seconds, truth_rate_hz=truth_rate)
     if preview is not None:
         render_preview(out_root, preview)
         console.print(f"preview written to {preview}")

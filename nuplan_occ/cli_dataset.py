@@ -123,6 +123,45 @@ def eval_cmd(
         console.print(f"JSON written to {json_out}")
 
 
+def _number(value: float | None) -> str:
+    """A QA figure in few characters: integral values as integers, others to 4 significant digits."""
+    if value is None:
+        return "-"
+    if float(value).is_integer() and abs(value) < 1e12:
+        return f"{int(value):,}"
+    return f"{value:,.1f}" if abs(value) >= 1000 else f"{value:.4g}"
+
+
+def qa_tables(qa: dict) -> list[Table]:
+    """The QA columns as two narrow tables (numeric figures; flags and labels), each column name in
+    full on one line: they fit an 80-column terminal for names up to ~30 characters."""
+    numeric = {name: q for name, q in qa.items() if "fraction_true" not in q and "counts" not in q}
+    other = {name: q for name, q in qa.items() if name not in numeric}
+    width = max((len(name) for name in qa), default=6)
+    tables = []
+    if numeric:
+        table = Table(title="QA columns, numeric (ok frames)")
+        table.add_column("column", no_wrap=True, min_width=width)
+        for name in ("n", "null", "median", "min", "max"):
+            table.add_column(name, justify="right", overflow="fold")
+        for column, q in numeric.items():
+            table.add_row(column, _fmt(q["n"]), _fmt(q["null"]),
+                          *(_number(q.get(k)) for k in ("median", "min", "max")))
+        tables.append(table)
+    if other:
+        table = Table(title="QA columns, flags and labels (ok frames)")
+        table.add_column("column", no_wrap=True, min_width=width)
+        for name in ("n", "null"):
+            table.add_column(name, justify="right")
+        table.add_column("values", overflow="fold")
+        for column, q in other.items():
+            values = (f"{100 * q['fraction_true']:.1f}% true" if q.get("fraction_true") is not None
+                      else ", ".join(f"{k or '(empty)'}: {v}" for k, v in q.get("counts", {}).items()) or "-")
+            table.add_row(column, _fmt(q["n"]), _fmt(q["null"]), values)
+        tables.append(table)
+    return tables
+
+
 def stats_tables(stats: dict) -> list[Table]:
     """Rich tables of a `dataset_stats` result."""
     frames = Table(title=f"frames of {stats['root']}")
@@ -151,16 +190,7 @@ def stats_tables(stats: dict) -> list[Table]:
         sizes.add_row(member, _fmt(b["frames"]), f"{b['mean']:,.0f}", f"{b['median']:,.0f}", _fmt(b["max"]),
                       _fmt(b["total"]))
     tables.append(sizes)
-    if stats["qa"]:
-        qa = Table(title="QA columns (ok frames)")
-        for name in ("column", "n", "null", "median", "min", "max", "other"):
-            qa.add_column(name, justify="right" if name not in ("column", "other") else "left")
-        for column, q in stats["qa"].items():
-            other = (f"{100 * q['fraction_true']:.1f}% true" if q.get("fraction_true") is not None
-                     else ", ".join(f"{k}: {v}" for k, v in q.get("counts", {}).items()))
-            qa.add_row(column, _fmt(q["n"]), _fmt(q["null"]), _fmt(q.get("median")), _fmt(q.get("min")),
-                       _fmt(q.get("max")), other)
-        tables.append(qa)
+    tables += qa_tables(stats["qa"])
     return tables
 
 
@@ -188,10 +218,25 @@ def validate_cmd(out: str = typer.Argument(..., help="Dataset root.")) -> None:
 def export_cmd(
     out: str = typer.Argument(..., help="Dataset root."),
     dest: Path = typer.Argument(..., help="Destination folder (local)."),
-    format: str = typer.Option(..., "--format", help="occ3d (<log>/<token>/labels.npz, free = 17) or uniscene "
-                               "(nuplan_quantized_X_Y_Z/<token>.npy)."),
+    format: str = typer.Option(..., "--format", help="occ3d (<log>/<token>/labels.npz, free = 17), uniscene "
+                               "(nuplan_quantized_X_Y_Z/<token>.npy) or mesh (<log>/<scene>.glb and .ply)."),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", envvar="NUPLAN_DATA_ROOT",
+                                             help="mesh: the nuPlan data root the dataset was built from."),
+    token: Optional[str] = typer.Option(None, "--token", help="mesh: only this frame's scene, objects placed "
+                                        "at this frame (default: every scene, at its first frame)."),
 ) -> None:
-    """Write the ok frames as Occ3D-style labels.npz or UniScenev2-style dense .npy files."""
+    """Write the ok frames as Occ3D-style labels.npz or UniScenev2-style dense .npy files, or each scene's
+    reconstructed background and object surfaces as meshes (GLB for Blender, PLY for MeshLab)."""
+    if format == "mesh":
+        from nuplan_occ.mesh_export import export_meshes
+
+        if data_root is None:
+            raise typer.BadParameter("--format mesh needs --data-root (or NUPLAN_DATA_ROOT)")
+        summary = export_meshes(out, dest, data_root, token=token)
+        meshes = sum(len(s["meshes"]) for s in summary["scenes"])
+        console.print(f"{meshes} meshes of {len(summary['scenes'])} scenes exported to {dest} (scene frame); "
+                      f"list in {dest / 'mesh_export.json'}")
+        return
     from nuplan_occ.export import export_dataset
 
     summary = export_dataset(out, dest, format)

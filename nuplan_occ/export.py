@@ -149,7 +149,7 @@ def export_dataset(root: str, dest: str | Path, format: str) -> dict:  # noqa: A
     list is written to `<dest>/export.json`.
     """
     if format not in FORMATS:
-        raise ExportError(f"format {format!r}: use one of {FORMATS}")
+        raise ExportError(f"format {format!r}: use one of {FORMATS} or mesh")
     ds = open_dataset(root)
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)

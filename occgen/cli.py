@@ -12,10 +12,14 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from nuplan_occ.cli_errors import CliApp
 from nuplan_occ.dataset import open_dataset
+from occgen.data import NoClipsError
+from occgen.exr import MapFileError
+from occgen.lidar_metrics import SweepSetError
 
-app = typer.Typer(help="Occupancy generation (UniScene v2 style): VAE, DiT, expansion, forecasting.",
-                  no_args_is_help=True)
+app = CliApp("occgen", extra_errors=(MapFileError, SweepSetError, NoClipsError), no_args_is_help=True,
+             help="Occupancy generation (UniScene v2 style): VAE, DiT, expansion, forecasting.")
 console = Console()
 
 
@@ -150,3 +154,7 @@ def _register_part2() -> None:
 
 
 _register_part2()
+
+
+if __name__ == "__main__":
+    app()

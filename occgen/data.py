@@ -14,11 +14,15 @@ from nuplan_occ.torch import OccupancyDataset
 from occgen.configs import CLASS_IDS
 
 
+class NoClipsError(ValueError):
+    """A dataset holds no clip of the length (and subset) a model trains on."""
+
+
 def open_clips(path: str, clip_len: int = 1, subset: str | None = None) -> OccupancyDataset:
-    """Clips of `clip_len` frames; ValueError if the dataset has none."""
+    """Clips of `clip_len` frames; NoClipsError if the dataset has none."""
     dataset = OccupancyDataset(str(path), clip_len=clip_len, subset=subset)
     if len(dataset) == 0:
-        raise ValueError(f"{path}: no clip of {clip_len} frames (subset {subset!r})")
+        raise NoClipsError(f"{path}: no clip of {clip_len} consecutive frames of one scene (subset {subset!r})")
     return dataset
 
 

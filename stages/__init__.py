@@ -1,7 +1,8 @@
 """The build DAG, top to bottom. Each module declares one Stage: inputs, outputs, typed params, and the
 pure functions of `nuplan_occ` it calls.
 
-    load -> split -> filter -> register -> track -> aggregate -> reconstruct -> voxelize -> label -> visibility -> write
+    scene stages: load -> split -> filter -> register -> track -> aggregate -> reconstruct -> label_map -> lidar_rays
+    frame stages, streamed frame by frame: voxelize -> label -> visibility -> write
 """
 
 from stages import aggregate, filter, label, load, reconstruct, register, split, track, visibility, voxelize, write
@@ -14,6 +15,8 @@ PIPELINE = [
     track.STAGE,
     aggregate.STAGE,
     reconstruct.STAGE,
+    label.MAP_STAGE,
+    visibility.RAYS_STAGE,
     voxelize.STAGE,
     label.STAGE,
     visibility.STAGE,

@@ -1,4 +1,4 @@
-"""Stage 8, label: background voxels of the ground layer (within a tolerance of the locally estimated
+"""Stage 8, label (a scene step, then a frame stage): background voxels of the ground layer (within a tolerance of the locally estimated
 ground height) take the BEV map class at that column — drivable -> road, painted lines -> road_line,
 other ground -> other_ground; background above the ground layer stays `other`; objects keep their
 box class. The BEV map is rasterized from the GPKG vector layers in each frame's (refined) ego frame,
@@ -6,8 +6,10 @@ corrected by the scene's map alignment: a 2D rigid transform that moves the scen
 (paint) onto the map's painted lines (nuplan_occ.voxel.map_align). Without a map for the log, background
 stays `other` and the frame records why.
 
-Inputs: `scene`, `registration`, `grids`. Outputs: `semantics` (sweep token -> uint8 grid),
-`map_status` (str: "" when the map was used), `map_alignment` (MapAlignment or None without a map).
+Scene step `label_map` (params section `label`): inputs `scene`, `registration`; outputs `map_layers` (the
+map's label layers around the scene, None without a map), `map_status` (str: "" when the map was used),
+`map_alignment` (MapAlignment or None), `stop_lines` (stop polygon edges to paint, None: whole outlines).
+Frame stage `label`: frame input `grids`; frame output `semantics` (uint8 grid).
 """
 
 from __future__ import annotations
@@ -65,34 +67,41 @@ def align_map(scene, poses: np.ndarray, layers: dict, params: LabelParams) -> tu
     return alignment, edges[paint_confirmed(edges, returns.moved(alignment.correction), params.line_width_m)]
 
 
-def run(inputs: dict, params: LabelParams) -> dict:
+def run_map(inputs: dict, params: LabelParams) -> dict:
     scene = inputs["scene"]
     poses = inputs["registration"].poses
-    grids = inputs["grids"]
-    position_of = {sweep.token: i for i, sweep in enumerate(scene.sweeps)}
+    built = [i for i in scene.ok_indices() if scene.sweeps[i].is_output]
     layers, map_status, alignment, stop_lines = None, "no map file found for the log's map", None, None
-    if scene.map_path is not None and grids:
-        centers = np.stack([poses[position_of[token]][:2, 3] for token in grids])
+    if scene.map_path is not None and built:
+        centers = poses[built][:, :2, 3]
         middle = (centers.min(axis=0) + centers.max(axis=0)) / 2.0
         half_size = float(np.max(centers.max(axis=0) - centers.min(axis=0))) / 2.0 + 75.0
         layers = NuplanMap(scene.map_path).layers_in_window(middle, half_size, LABEL_LAYERS)
         map_status = ""
         if params.align_to_paint:
             alignment, stop_lines = align_map(scene, poses, layers, params)
-    correction = alignment.correction if alignment is not None else np.eye(4)
-    semantics = {}
-    for token, grid in grids.items():
-        labeled = grid.semantics.copy()
-        if layers is not None:
-            bev = rasterize_bev(layers, correction @ poses[position_of[token]], DEFAULT_GRID,
-                                line_width_m=params.line_width_m, stop_lines=stop_lines)
-            background = label_background(grid.occupied_background, bev, DEFAULT_GRID,
-                                          ground_tolerance_m=params.ground_tolerance_m)
-            replace = grid.occupied_background & (labeled == OTHER)
-            labeled[replace] = background[replace]
-        semantics[token] = labeled
-    return {"semantics": semantics, "map_status": map_status, "map_alignment": alignment}
+    return {"map_layers": layers, "map_status": map_status, "map_alignment": alignment, "stop_lines": stop_lines}
 
 
-STAGE = Stage("label", inputs=("scene", "registration", "grids"), outputs=("semantics", "map_status", "map_alignment"),
-              params_type=LabelParams, run=run, code=("nuplan_occ.voxel", "nuplan_occ.io.maps"), doc=__doc__ or "")
+def run(inputs: dict, frame: dict, params: LabelParams) -> dict:
+    grid, layers, alignment = frame["grids"], inputs["map_layers"], inputs["map_alignment"]
+    labeled = grid.semantics.copy()
+    if layers is not None:
+        correction = alignment.correction if alignment is not None else np.eye(4)
+        bev = rasterize_bev(layers, correction @ inputs["registration"].poses[frame["position"]], DEFAULT_GRID,
+                            line_width_m=params.line_width_m, stop_lines=inputs["stop_lines"])
+        background = label_background(grid.occupied_background, bev, DEFAULT_GRID,
+                                      ground_tolerance_m=params.ground_tolerance_m)
+        replace = grid.occupied_background & (labeled == OTHER)
+        labeled[replace] = background[replace]
+    return {"semantics": labeled}
+
+
+MAP_STAGE = Stage("label_map", inputs=("scene", "registration"),
+                  outputs=("map_layers", "map_status", "map_alignment", "stop_lines"), params_type=LabelParams,
+                  run=run_map, code=("nuplan_occ.voxel", "nuplan_occ.io.maps"), doc=__doc__ or "",
+                  params_section="label")
+
+STAGE = Stage("label", inputs=("scene", "registration", "map_layers", "map_alignment", "stop_lines", "grids"),
+              outputs=("semantics",), params_type=LabelParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "",
+              per_frame=True)

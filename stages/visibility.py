@@ -1,13 +1,16 @@
-"""Stage 9, visibility: `mask_lidar` by casting the frame's own LiDAR rays through the grid (voxels
+"""Stage 9, visibility (a scene pass, then a frame stage): `mask_lidar` by casting the frame's own LiDAR rays through the grid (voxels
 traversed = observed free, the return voxel = observed occupied, the rest unknown); free-space
 consistency: background voxels those rays crossed, with no aggregated point in them, above the ground
 voxel, are cleared (nuplan_occ.voxel.free_space); then `mask_camera` from the 8 cameras' frusta with
 occlusion by the frame's (cleared) occupancy.
 
 Rays start at the merged LiDAR frame's origin (the only sensor pose nuPlan stores).
-Inputs: `scene`, `registration`, `background_aggregate`, `grids`, `semantics`. Outputs: `masks` (sweep
-token -> {"mask_lidar", "mask_camera"}), `final_semantics` (sweep token -> uint8 grid: `semantics` with the
-cleared voxels empty), `free_cleared` (sweep token -> number of voxels cleared).
+Scene pass `lidar_rays` (params section `visibility`): input `scene`; output `observations` (sweep token
+of every loaded output frame -> (packed observed, packed FREE): np.packbits of the flat grids, 640 KB each),
+so a frame can use the other frames' free space without holding their grids.
+Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate`, `observations`, frame
+inputs `grids`, `semantics`; frame outputs `masks` ({"mask_lidar", "mask_camera"}), `final_semantics`
+(`semantics` with the cleared voxels empty), `free_cleared` (number of voxels cleared).
 """
 
 from __future__ import annotations
@@ -42,51 +45,61 @@ class VisibilityParams:
     free_space_other_frames: bool = True
 
 
-def run(inputs: dict, params: VisibilityParams) -> dict:
+def run_rays(inputs: dict, params: VisibilityParams) -> dict:
     scene = inputs["scene"]
-    poses = inputs["registration"].poses
-    background = inputs["background_aggregate"]
-    frames = [(position, sweep) for position, sweep in enumerate(scene.sweeps) if sweep.token in inputs["semantics"]]
-    masks, final, cleared, free_bits = {}, {}, {}, {}
-    for _, sweep in frames:
-        masks[sweep.token] = {}
-        if params.lidar:
-            observation = lidar_observation(sweep.cloud.xyz, scene.sensor_origin_ego, DEFAULT_GRID)
-            masks[sweep.token]["mask_lidar"] = observation != UNKNOWN
-            free_bits[sweep.token] = packed_free(observation)
-    for position, sweep in frames:
-        semantics = inputs["semantics"][sweep.token].copy()
-        cleared[sweep.token] = 0
-        if params.lidar and params.clear_free_space:
-            clear = free_space_clear(position, sweep.token, frames, free_bits, poses, background,
-                                     inputs["grids"][sweep.token], semantics, params)
+    observations = {}
+    if params.lidar:
+        for position in scene.output_positions():
+            sweep = scene.sweeps[position]
+            if sweep.cloud is not None:
+                observation = lidar_observation(sweep.cloud.xyz, scene.sensor_origin_ego, DEFAULT_GRID)
+                observations[sweep.token] = (np.packbits((observation != UNKNOWN).reshape(-1)), packed_free(observation))
+    return {"observations": observations}
+
+
+def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
+    scene = inputs["scene"]
+    position = frame["position"]
+    token = scene.sweeps[position].token
+    semantics = frame["semantics"].copy()
+    masks, cleared = {}, 0
+    if params.lidar:
+        observed = np.unpackbits(inputs["observations"][token][0], count=int(np.prod(DEFAULT_GRID.shape)))
+        masks["mask_lidar"] = observed.reshape(DEFAULT_GRID.shape).astype(bool)
+        if params.clear_free_space:
+            clear = free_space_clear(position, token, scene, inputs["observations"], inputs["registration"].poses,
+                                     inputs["background_aggregate"], frame["grids"], semantics, params)
             semantics[clear] = 0
-            cleared[sweep.token] = int(clear.sum())
-        final[sweep.token] = semantics
-        if params.camera and scene.cameras:
-            masks[sweep.token]["mask_camera"] = camera_visibility(
-                semantics > 0, scene.cameras, DEFAULT_GRID, max_range_m=params.camera_max_range_m)
-    return {"masks": masks, "final_semantics": final, "free_cleared": cleared}
+            cleared = int(clear.sum())
+    if params.camera and scene.cameras:
+        masks["mask_camera"] = camera_visibility(semantics > 0, scene.cameras, DEFAULT_GRID,
+                                                 max_range_m=params.camera_max_range_m)
+    return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}
 
 
-def free_space_clear(position: int, token: str, frames: list, free_bits: dict, poses: np.ndarray, background,
+def free_space_clear(position: int, token: str, scene, observations: dict, poses: np.ndarray, background,
                      grids, semantics: np.ndarray, params: VisibilityParams) -> np.ndarray:
     """bool grid of the frame's background voxels to clear (nuplan_occ.voxel.free_space): crossed by its own
-    rays or, with free_space_other_frames, by another output frame's (free_bits: token -> packed FREE)."""
+    rays or, with free_space_other_frames, by another output frame's (observations: token -> (packed
+    observed, packed FREE))."""
     T_ego_from_global = invert_transform(poses[position])
     support = point_support(transform_points(T_ego_from_global @ background.T_global_from_scene, background.points))
     candidates = clearable_background(grids.occupied_background & (semantics > 0), support, grids.ground_height,
                                       DEFAULT_GRID, params.free_space_ground_margin_m)
-    others = [(other, sweep.token) for other, sweep in frames if sweep.token != token] if params.free_space_other_frames else []
+    position_of = {sweep.token: i for i, sweep in enumerate(scene.sweeps)}
+    others = [t for t in observations if t != token] if params.free_space_other_frames else []
     rest = np.argwhere(candidates)
     free = free_in_other_frames(DEFAULT_GRID.index_to_center(rest),
-                                [np.eye(4)] + [invert_transform(poses[other]) @ poses[position] for other, _ in others],
-                                [free_bits[token]] + [free_bits[t] for _, t in others])
+                                [np.eye(4)] + [invert_transform(poses[position_of[t]]) @ poses[position] for t in others],
+                                [observations[token][1]] + [observations[t][1] for t in others])
     clear = np.zeros(DEFAULT_GRID.shape, dtype=bool)
     clear[tuple(rest[free].T)] = True
     return clear
 
 
-STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "grids", "semantics"),
+RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations",), params_type=VisibilityParams,
+                   run=run_rays, code=("nuplan_occ.voxel",), doc=__doc__ or "", params_section="visibility")
+
+STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "observations", "grids", "semantics"),
               outputs=("masks", "final_semantics", "free_cleared"), params_type=VisibilityParams,
-              run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "")
+              run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "", per_frame=True)

@@ -1,4 +1,4 @@
-"""Stage 7, voxelize: per output frame, the background surface moved into the frame's ego frame
+"""Stage 7, voxelize (a frame stage): per output frame, the background surface moved into the frame's ego frame
 (refined pose) and each object's geometry placed by its box at that frame: its carved solid (cell
 centres, when the reconstruct stage made one), else its surface, else its raw (windowed) points;
 background inside current boxes is removed; surfaces are voxelized exactly (no holes where triangles
@@ -6,8 +6,8 @@ exceed a voxel); solid objects are filled inside their surface. Gives instance i
 and per-voxel flow. Objects are placed by their corrected boxes (track stage).
 
 Inputs: `scene`, `registration`, `object_boxes`, `background_aggregate`, `background_surface`, `objects`,
-`object_surfaces`, `object_solids`. Outputs: `grids` (sweep token -> FrameGrids; background labeled
-OTHER here).
+`object_surfaces`, `object_solids`. Frame output: `grids` (the frame's FrameGrids; background labeled
+OTHER here), or `failure` for a sweep that did not load.
 """
 
 from __future__ import annotations
@@ -96,31 +96,30 @@ def placed_objects(scene, boxes: Boxes, ok_position: int, objects: dict, surface
     return placed
 
 
-def run(inputs: dict, params: VoxelizeParams) -> dict:
+def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
     scene = inputs["scene"]
-    poses = inputs["registration"].poses
-    T_global_from_scene = inputs["background_aggregate"].T_global_from_scene
+    position = frame["position"]
+    sweep = scene.sweeps[position]
+    if sweep.cloud is None:
+        return {"failure": sweep.failure or "frame was not built"}
+    ok_position = scene.ok_indices().index(position)
+    T_ego_from_global = invert_transform(inputs["registration"].poses[position])
     surface = inputs["background_surface"]
-    ok_position = {position: i for i, position in enumerate(scene.ok_indices())}
-    grids = {}
-    for position, sweep in enumerate(scene.sweeps):
-        if not sweep.is_output or position not in ok_position:
-            continue
-        T_ego_from_global = invert_transform(poses[position])
-        vertices, faces = crop_mesh_to_grid(
-            transform_points(T_ego_from_global @ T_global_from_scene, surface.vertices), surface.faces,
-            params.crop_margin_m)
-        objects = placed_objects(scene, inputs["object_boxes"][position], ok_position[position], inputs["objects"],
-                                 inputs["object_surfaces"], inputs["object_solids"], params.pedestrian_window,
-                                 params.box_fill_categories, params.box_fill_spacing_m,
-                                 params.sparse_solid_categories, params.solid_min_cells)
-        grids[sweep.token] = compose_frame(
-            vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects,
-            ground_layer_classes=tuple(LABELS.box_category_to_id[c] for c in params.ground_layer_categories))
+    vertices, faces = crop_mesh_to_grid(
+        transform_points(T_ego_from_global @ inputs["background_aggregate"].T_global_from_scene, surface.vertices),
+        surface.faces, params.crop_margin_m)
+    objects = placed_objects(scene, inputs["object_boxes"][position], ok_position, inputs["objects"],
+                             inputs["object_surfaces"], inputs["object_solids"], params.pedestrian_window,
+                             params.box_fill_categories, params.box_fill_spacing_m,
+                             params.sparse_solid_categories, params.solid_min_cells)
+    grids = compose_frame(
+        vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects,
+        ground_layer_classes=tuple(LABELS.box_category_to_id[c] for c in params.ground_layer_categories))
     return {"grids": grids}
 
 
 STAGE = Stage("voxelize",
               inputs=("scene", "registration", "object_boxes", "background_aggregate", "background_surface", "objects",
                       "object_surfaces", "object_solids"),
-              outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "")
+              outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "",
+              per_frame=True)

@@ -1,12 +1,13 @@
-"""Stage 10, write: one tar shard per scene (semantics, masks, instance, flow per frame, zstd) published
-atomically, and the scene's manifest rows (identity, pose, filter columns, QA figures, status). Frames
-whose sweep failed get a row with status "failed" and the reason. The runner commits the rows.
+"""Stage 10, write (the last frame stage): the frame's record (semantics, masks, instance, flow; identity,
+pose, filter columns, QA figures, status), which the runner encodes into the scene's tar shard at once
+(published atomically when the scene's last frame is in; the runner commits the rows). A frame whose sweep
+failed, or whose earlier frame stage failed, gets a record with status "failed" and the reason.
 
-Inputs: `scene`, `registration`, `grids`, `final_semantics`, `masks`, `free_cleared`, `outliers_removed`,
-`map_status`, `map_alignment`, `object_boxes`, `object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`).
-Outputs: `rows` (manifest rows of the scene). A row's `ego_to_global` is the refined pose corrected by the
-scene's map alignment: the pose the frame's labels were rasterized with, so the map drawn with it lands
-where the grid says.
+Inputs: `scene`, `registration`, `outliers_removed`, `map_status`, `map_alignment`, `object_boxes`,
+`object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`); frame inputs `grids`, `final_semantics`,
+`masks`, `free_cleared`. Frame output: `record` (FrameRecord). A row's `ego_to_global` is the refined pose
+corrected by the scene's map alignment: the pose the frame's labels were rasterized with, so the map drawn
+with it lands where the grid says.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.pipeline.frame_columns import agent_speed_columns, ego_speeds, point_coverage
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.storage import DatasetWriter, FrameRecord
+from nuplan_occ.storage import FrameRecord
 from nuplan_occ.voxel.box_labels import box_label_columns
 from nuplan_occ.voxel.map_align import MapAlignment
 
@@ -56,46 +57,37 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
     return columns
 
 
-def run(inputs: dict, params: WriteParams) -> dict:
+def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     scene = inputs["scene"]
     task = scene.task
     registration = inputs["registration"]
     alignment = inputs["map_alignment"]
-    poses = registration.poses
-    map_poses = poses if alignment is None else np.einsum("ij,njk->nik", alignment.correction, poses)
-    speeds = ego_speeds(poses, np.array([s.timestamp_us for s in scene.sweeps]))
-    records = []
-    for position, sweep in enumerate(scene.sweeps):
-        if not sweep.is_output:
-            continue
-        columns = frame_columns(scene, position, registration, speeds, inputs["outliers_removed"][position],
-                                inputs["map_status"], alignment)
-        record = FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
-                             scene_name=task.scene_name, frame_index=sweep.index, token=sweep.token,
-                             timestamp_us=sweep.timestamp_us, ego_to_global=map_poses[position], arrays={},
-                             columns=columns)
-        if sweep.token not in inputs["final_semantics"]:
-            record.status, record.failure_reason = "failed", sweep.failure or "frame was not built"
-            records.append(record)
-            continue
-        grids = inputs["grids"][sweep.token]
-        semantics = inputs["final_semantics"][sweep.token]
-        arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow,
-                  **inputs["masks"].get(sweep.token, {})}
-        record.arrays = {name: arrays[name] for name in params.members if name in arrays}
-        columns["qa_point_coverage"] = point_coverage(sweep.cloud.xyz, semantics > 0)
-        columns["qa_occupied_voxels"] = int((semantics > 0).sum())
-        columns["qa_free_space_cleared"] = int(inputs["free_cleared"].get(sweep.token, 0))
-        columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
-                                         scene.instance_ids, semantics, grids.instance))
-        if "mask_lidar" in arrays:
-            columns["qa_lidar_observed_fraction"] = float(arrays["mask_lidar"].mean())
-        records.append(record)
-    writer = DatasetWriter(task.out_root, metadata={"params": {}})
-    return {"rows": writer.write_shard(task.shard_key, records)}
+    position = frame["position"]
+    sweep = scene.sweeps[position]
+    pose = registration.poses[position] if alignment is None else alignment.correction @ registration.poses[position]
+    speeds = ego_speeds(registration.poses, np.array([s.timestamp_us for s in scene.sweeps]))
+    columns = frame_columns(scene, position, registration, speeds, inputs["outliers_removed"][position],
+                            inputs["map_status"], alignment)
+    record = FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
+                         scene_name=task.scene_name, frame_index=sweep.index, token=sweep.token,
+                         timestamp_us=sweep.timestamp_us, ego_to_global=pose, arrays={}, columns=columns)
+    if frame.get("failure"):
+        record.status, record.failure_reason = "failed", frame["failure"]
+        return {"record": record}
+    grids, semantics = frame["grids"], frame["final_semantics"]
+    arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow, **frame["masks"]}
+    record.arrays = {name: arrays[name] for name in params.members if name in arrays}
+    columns["qa_point_coverage"] = point_coverage(sweep.cloud.xyz, semantics > 0)
+    columns["qa_occupied_voxels"] = int((semantics > 0).sum())
+    columns["qa_free_space_cleared"] = int(frame["free_cleared"])
+    columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
+                                     scene.instance_ids, semantics, grids.instance))
+    if "mask_lidar" in arrays:
+        columns["qa_lidar_observed_fraction"] = float(arrays["mask_lidar"].mean())
+    return {"record": record}
 
 
-STAGE = Stage("write", inputs=("scene", "registration", "grids", "final_semantics", "masks", "free_cleared",
-                                "outliers_removed", "map_status", "map_alignment", "object_boxes", "object_points"),
-              outputs=("rows",), params_type=WriteParams, run=run,
-              code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "")
+STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "map_status", "map_alignment",
+                                "object_boxes", "object_points", "grids", "final_semantics", "masks", "free_cleared"),
+              outputs=("record",), params_type=WriteParams, run=run,
+              code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "", per_frame=True)

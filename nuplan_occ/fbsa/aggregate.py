@@ -39,11 +39,24 @@ def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 def within_boxes(points: np.ndarray, T_box_from_points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """(N,) bool: whether each point (N, 3) lies in [lower, upper) (3,) m of at least one of the K axis-aligned
-    boxes, box k being given in its own frame with T_box_from_points (K, 4, 4) from the points' frame."""
+    boxes, box k being given in its own frame with T_box_from_points (K, 4, 4) from the points' frame.
+    Boxes are tried nearest first, each only on the points no nearer box holds, and the search stops at the
+    first box too far from the points' frame to hold any of them (same answer as trying every box)."""
+    Ts = np.asarray(T_box_from_points, dtype=np.float64).reshape(-1, 4, 4)
     keep = np.zeros(len(points), dtype=bool)
-    for T in np.asarray(T_box_from_points, dtype=np.float64).reshape(-1, 4, 4):
-        local = transform_points(T, points)
-        keep |= np.all((local >= lower) & (local < upper), axis=1)
+    if not len(points) or not len(Ts):
+        return keep
+    reach = float(np.linalg.norm(np.maximum(np.abs(lower), np.abs(upper))))  # farthest box point from its centre
+    centre_distance = np.linalg.norm(Ts[:, :3, 3], axis=1)  # distance from the box centre to the points' origin
+    radius = float(np.sqrt((points ** 2).sum(axis=1).max()))
+    for k in np.argsort(centre_distance, kind="stable"):
+        if centre_distance[k] > radius + reach:
+            break
+        rest = np.flatnonzero(~keep)
+        if not len(rest):
+            break
+        local = transform_points(Ts[k], points[rest])
+        keep[rest[np.all((local >= lower) & (local < upper), axis=1)]] = True
     return keep
 
 
@@ -62,7 +75,8 @@ def aggregate_background(
     T_global_from_ego, lower (3,), upper (3,) m): if set, keep only the points inside [lower, upper) of the ego
     frame of at least one crop pose (e.g. the output frames' grids plus a margin), before any downsampling.
     voxel_downsample_m: if set, keep only the first point (earliest frame) of every voxel of that size, with its
-    own sensor origin and frame id.
+    own sensor origin and frame id; applied as the aggregate is built (every AGGREGATE_CHUNK_FRAMES frames), so
+    memory follows the downsampled aggregate, not the raw points of the scene.
     """
     poses = np.asarray(poses, dtype=np.float64)
     origins = np.asarray(sensor_origins_ego, dtype=np.float64)
@@ -77,20 +91,27 @@ def aggregate_background(
     scene_from_global = invert_transform(T_gs)
     if crop is not None:
         crop_from_global = np.stack([invert_transform(T) for T in np.asarray(crop[0], np.float64).reshape(-1, 4, 4)])
-    points, sensors, ids = [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros(0, np.int32)]
-    for i, cloud in enumerate(clouds_ego):
-        T = scene_from_global @ poses[i]
-        if crop is not None:
-            cloud = cloud[within_boxes(cloud, crop_from_global @ poses[i], crop[1], crop[2])]
-        pts = transform_points(T, cloud)
-        points.append(pts)
-        sensors.append(np.repeat(transform_points(T, origins[i][None]), len(pts), axis=0))
-        ids.append(np.full(len(pts), i, dtype=np.int32))
-    agg = BackgroundAggregate(np.vstack(points), np.vstack(sensors), np.concatenate(ids), T_gs)
-    if voxel_downsample_m:
-        keep = voxel_first_indices(agg.points, voxel_downsample_m)
-        agg = BackgroundAggregate(agg.points[keep], agg.sensor_origins[keep], agg.frame_ids[keep], T_gs)
+    agg = BackgroundAggregate(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int32), T_gs)
+    for start in range(0, F, AGGREGATE_CHUNK_FRAMES):
+        points, sensors, ids = [agg.points], [agg.sensor_origins], [agg.frame_ids]
+        for i in range(start, min(F, start + AGGREGATE_CHUNK_FRAMES)):
+            cloud = clouds_ego[i]
+            T = scene_from_global @ poses[i]
+            if crop is not None:
+                cloud = cloud[within_boxes(cloud, crop_from_global @ poses[i], crop[1], crop[2])]
+            pts = transform_points(T, cloud)
+            points.append(pts)
+            sensors.append(np.repeat(transform_points(T, origins[i][None]), len(pts), axis=0))
+            ids.append(np.full(len(pts), i, dtype=np.int32))
+        agg = BackgroundAggregate(np.vstack(points), np.vstack(sensors), np.concatenate(ids), T_gs)
+        if voxel_downsample_m:  # first point per voxel so far: the same points as downsampling all at once
+            keep = voxel_first_indices(agg.points, voxel_downsample_m)
+            agg = BackgroundAggregate(agg.points[keep], agg.sensor_origins[keep], agg.frame_ids[keep], T_gs)
     return agg
+
+
+AGGREGATE_CHUNK_FRAMES = 16
+"""Frames added to the background aggregate between downsamplings: bounds the raw points held at once."""
 
 
 @dataclass

@@ -20,7 +20,7 @@ class ConfigError(ValueError):
 
 def default_params(stages: list) -> dict[str, Any]:
     """stage name -> default params instance."""
-    return {stage.name: stage.params_type() for stage in stages}
+    return {stage.params_name: stage.params_type() for stage in stages}
 
 
 def _coerce(value: Any, current: Any, where: str) -> Any:

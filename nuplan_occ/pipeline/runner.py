@@ -1,5 +1,11 @@
-"""Runs the stages of `stages.PIPELINE` for one scene, with every stage output cached under the work
-folder by a key of (stage, params, code version, input keys)."""
+"""Runs the stages of `stages.PIPELINE` for one scene, with every scene stage's output cached under the
+work folder by a key of (stage, params, code version, input keys).
+
+The frame stages run as one stream: for each output frame in order, every frame stage runs on it and the
+last one's `record` is encoded into the scene's shard at once; the frame's grids are released before the
+next frame is composed. The stream's scene output, `rows` (the shard's manifest rows), is cached under the
+last frame stage's key, so a finished scene is answered from the cache; a scene interrupted mid-stream
+starts its stream again (its shard is published only when complete), giving the same bytes."""
 
 from __future__ import annotations
 
@@ -52,7 +58,7 @@ def stage_keys(task: SceneTask, pipeline: list) -> dict[str, str]:
     artifact_keys: dict[str, str] = {"task": task_source_key(task)}
     keys: dict[str, str] = {}
     for stage in pipeline:
-        params = task.params.get(stage.name, stage.params_type())
+        params = task.params.get(stage.params_name, stage.params_type())
         keys[stage.name] = stable_hash(stage.name, params, stage.code_version(),
                                        [artifact_keys[name] for name in stage.inputs])
         artifact_keys.update({name: keys[stage.name] for name in stage.outputs})
@@ -62,11 +68,28 @@ def stage_keys(task: SceneTask, pipeline: list) -> dict[str, str]:
 def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events: EventSink | None = None,
                result: SceneResult | None = None) -> dict[str, Any]:
     """The `wanted` artifacts of the scene. Works backwards from them: a stage runs only when its
-    outputs are not in the cache, so a finished scene is answered from the cache without reading input."""
+    outputs are not in the cache, so a finished scene is answered from the cache without reading input.
+    An artifact is dropped from memory once every stage that reads it is done (unless it is wanted)."""
     cache = StageCache(task.work_dir)
     keys = stage_keys(task, pipeline)
-    producer = {name: stage for stage in pipeline for name in stage.outputs}
+    frame_stages = [stage for stage in pipeline if stage.per_frame]
+    frame_artifacts = {name for stage in frame_stages for name in stage.outputs}
+    producer = {name: stage for stage in pipeline if not stage.per_frame for name in stage.outputs}
+    if frame_stages:
+        producer[STREAM_OUTPUT] = frame_stages[-1]
     artifacts: dict[str, Any] = {"task": task}
+    group = {stage.name: (frame_stages[-1].name if stage.per_frame else stage.name) for stage in pipeline}
+    readers: dict[str, set[str]] = {}
+    for stage in pipeline:
+        for name in stage.inputs:
+            readers.setdefault(name, set()).add(group[stage.name])
+    done: set[str] = set()
+
+    def finished(stage) -> None:
+        done.add(stage.name)
+        for name in {n for s in pipeline if group[s.name] == stage.name for n in s.inputs}:
+            if name not in wanted and readers[name] <= done:
+                artifacts.pop(name, None)
 
     def obtain(name: str) -> Any:
         if name not in artifacts:
@@ -74,25 +97,64 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
             artifacts.update(run_or_reuse(stage))
         return artifacts[name]
 
+    def params_of(stage) -> Any:
+        return task.params.get(stage.params_name, stage.params_type())
+
+    def timed(stage, seconds: float) -> None:
+        if result is not None:
+            result.stage_seconds[stage.name] = result.stage_seconds.get(stage.name, 0.0) + seconds
+
     def run_or_reuse(stage) -> dict[str, Any]:
-        params = task.params.get(stage.name, stage.params_type())
         outputs = cache.get(stage.name, keys[stage.name]) if stage.cache else None
         if outputs is not None and _outputs_still_valid(stage.name, outputs, task):
+            finished(stage)
             return outputs
-        inputs = {name: obtain(name) for name in stage.inputs}
-        if events:
-            events((task.log_name, task.scene_name, stage.name))
-        started = time.perf_counter()
-        outputs = stage.run(inputs, params)
-        if result is not None:
-            result.stage_seconds[stage.name] = time.perf_counter() - started
-            if stage.cache:
-                result.computed.append(stage.name)
+        if stage.per_frame:
+            outputs = {STREAM_OUTPUT: stream_frames()}
+        else:
+            inputs = {name: obtain(name) for name in stage.inputs}
+            if events:
+                events((task.log_name, task.scene_name, stage.name))
+            started = time.perf_counter()
+            outputs = stage.run(inputs, params_of(stage))
+            timed(stage, time.perf_counter() - started)
+            del inputs
+        if result is not None and stage.cache:
+            result.computed.append(stage.name)
         if stage.cache:
             cache.put(stage.name, keys[stage.name], outputs)
+        finished(stage)
         return outputs
 
+    def stream_frames() -> list[dict]:
+        from nuplan_occ.storage import DatasetWriter
+
+        inputs = [{name: obtain(name) for name in stage.inputs if name not in frame_artifacts} for stage in frame_stages]
+        shard = DatasetWriter(task.out_root, metadata={"params": {}}).open_shard(task.shard_key)
+        for position in obtain("scene").output_positions():
+            frame: dict[str, Any] = {"position": position}
+            for k, stage in enumerate(frame_stages):
+                if frame.get("failure") and k < len(frame_stages) - 1:
+                    continue
+                if events:
+                    events((task.log_name, task.scene_name, stage.name))
+                started = time.perf_counter()
+                try:
+                    frame.update(stage.run(inputs[k], frame, params_of(stage)))
+                except Exception as exc:  # a frame failure is recorded in its row, never fatal to the scene
+                    if k == len(frame_stages) - 1:
+                        raise
+                    frame["failure"] = f"{stage.name}: {type(exc).__name__}: {exc}"
+                    traceback.print_exc()
+                timed(stage, time.perf_counter() - started)
+            shard.add(frame["record"])
+        return shard.publish()
+
     return {name: obtain(name) for name in wanted}
+
+
+STREAM_OUTPUT = "rows"
+"""The scene artifact of the frame stream: the manifest rows of the scene's published shard."""
 
 
 def _outputs_still_valid(stage_name: str, outputs: dict[str, Any], task: SceneTask) -> bool:

@@ -115,6 +115,10 @@ class SceneData:
     instance_ids: dict[str, int]
     track_categories: dict[str, str]
 
+    def output_positions(self) -> list[int]:
+        """Positions (in self.sweeps) of the sweeps written to the dataset, loaded or not."""
+        return [i for i, sweep in enumerate(self.sweeps) if sweep.is_output]
+
     def ok_indices(self) -> list[int]:
         """Positions (in self.sweeps) of sweeps whose points loaded."""
         return [i for i, sweep in enumerate(self.sweeps) if sweep.cloud is not None]

@@ -1,5 +1,9 @@
 """What a pipeline stage declares: its name, named inputs and outputs, typed params and the pure
-function that runs it. Stage modules in `stages/` build one `Stage` each (wiring only)."""
+function that runs it. Stage modules in `stages/` build one `Stage` each (wiring only).
+
+Two granularities: a scene stage runs once per scene and its outputs are scene artifacts (cached); a
+frame stage (per_frame=True) runs once per output frame, in DAG order, and its outputs are that frame's
+artifacts, released once the frame is written (see nuplan_occ.pipeline.runner)."""
 
 from __future__ import annotations
 
@@ -19,6 +23,11 @@ class Stage:
     stages, or the scene's source data for the first stage); it returns a dict with exactly `outputs`.
     code: modules whose source is part of this stage's cache key (a change in them reruns the stage).
     cache: False for stages whose outputs are cheaper to recompute than to store (e.g. reading input).
+    per_frame: a frame stage: run(inputs, frame, params) -> frame outputs, where `inputs` holds the scene
+    artifacts named in `inputs` and `frame` the frame's artifacts so far ("position": the sweep's position in
+    the scene, plus the outputs of earlier frame stages); it may set "failure" (reason) to skip the frame's
+    remaining stages but the last, which turns the frame into its record.
+    params_section: the params section it reads (default: its name), when two stages share one.
     """
 
     name: str
@@ -29,6 +38,13 @@ class Stage:
     code: tuple[str, ...] = ()
     cache: bool = True
     doc: str = field(default="", compare=False)
+    per_frame: bool = False
+    params_section: str = ""
+
+    @property
+    def params_name(self) -> str:
+        """The section of the build params this stage reads."""
+        return self.params_section or self.name
 
     def code_version(self) -> str:
         """sha256 over the source of the stage's own module and its declared code modules (a package

@@ -1,6 +1,7 @@
 """The report's view of a dataset: every manifest row (failed ones included) as numpy columns, ordered by
 scene then time, with the scenes as contiguous row ranges. Read through the storage reader API
-(`nuplan_occ.storage.read_manifest`), never from the files themselves.
+(`nuplan_occ.storage.manifest_reader.ManifestIndex`, only the columns the report shows), never from the
+files themselves.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from nuplan_occ.report.flags import Columns
-from nuplan_occ.storage import MEMBERS, read_manifest
+from nuplan_occ.storage import MEMBERS
+from nuplan_occ.storage.manifest_reader import ManifestIndex
 from nuplan_occ.storage.records import STATUS_OK
 
 IDENTITY = ("log", "scene_token", "scene_name", "frame_index", "token", "timestamp_us", "status", "failure_reason")
@@ -70,7 +72,11 @@ def _member_bytes(table: pa.Table) -> np.ndarray:
 
 def load_frames(root: str) -> BuildFrames:
     """Every row of the dataset at `root`, ordered by (log, scene name, timestamp)."""
-    table = read_manifest(root)
+    index = ManifestIndex(root)
+    available = index.schema.names
+    wanted = [*IDENTITY, "ego_to_global", "class_hist", *(f"{m}_nbytes" for m in MEMBERS),
+              *(n for n in available if n.startswith("qa_"))]
+    table = index.table([n for n in wanted if n in available])
     table = table.sort_by([("log", "ascending"), ("scene_name", "ascending"), ("timestamp_us", "ascending")])
     names = [*IDENTITY, *sorted(n for n in table.column_names if n.startswith("qa_"))]
     columns = {name: column_to_numpy(table[name]) for name in names}

@@ -1,7 +1,7 @@
 """Simulated manifest rows at dataset scale (for the manifest bench and reader tests; no shards exist).
 
 `simulated_manifest(n_scenes, frames_per_scene)` is a manifest table in manifest order with every base
-and member column and the usual filter columns: scene s of log s // 4 holds frames_per_scene ok frames
+and member column and the usual filter columns and `output_index`: scene s of log s // 4 holds frames_per_scene ok frames
 at 10 Hz (every 50th frame failed), distinct 32-hex tokens, one commit id per scene. Built vectorised
 (strings from fixed-width byte buffers), so 3.6 M rows take seconds.
 """
@@ -85,6 +85,8 @@ def simulated_manifest(n_scenes: int, frames_per_scene: int = 190, hist_len: int
     columns["ego_speed"] = pa.array(speed)
     columns["max_agent_speed"] = pa.array(rng.gamma(2.0, 2.0, n))
     columns["n_moving_agents"] = pa.array(rng.integers(0, 12, n))
+    columns["output_index"] = pa.array(np.tile(np.arange(frames_per_scene, dtype=np.int64), n_scenes))
     schema = base_schema(hist_len)
-    fields = list(schema) + [pa.field(k, columns[k].type) for k in ("ego_speed", "max_agent_speed", "n_moving_agents")]
+    fields = list(schema) + [pa.field(k, columns[k].type) for k in ("ego_speed", "max_agent_speed", "n_moving_agents",
+                                                                        "output_index")]
     return pa.Table.from_arrays([columns[f.name].cast(f.type) for f in fields], schema=pa.schema(fields))

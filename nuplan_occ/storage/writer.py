@@ -109,25 +109,16 @@ class DatasetWriter:
         `<key>.json`; failed frames have no members (only their manifest row). The returned rows are
         plain JSON-able dicts (every manifest column present, null where absent) for `commit`.
         """
-        _check_shard_key(shard_key)
-        records = sorted(records, key=lambda r: r.key)
-        keys = [r.key for r in records]
-        if len(set(keys)) != len(keys):
-            raise InvalidFrameError(f"shard {shard_key!r}: two records share a frame key (log, frame_index)")
-        members: list[tuple[str, bytes]] = []
-        rows = []
+        shard = self.open_shard(shard_key)
         for record in records:
-            row, frame_members = self._encode_frame(record, shard_key)
-            members += frame_members
-            rows.append(row)
-        data, spans = pack_tar(members)
-        for row in rows:
-            for name, spec in MEMBERS.items():
-                span = spans.get(f"{row['key']}.{spec.suffix}")
-                if span is not None:
-                    row[f"{name}_offset"], row[f"{name}_nbytes"] = span
-        atomic_put(self._fs, shard_path(self._path, shard_key), data)
-        return rows
+            shard.add(record)
+        return shard.publish()
+
+    def open_shard(self, shard_key: str) -> "ShardStream":
+        """A shard filled one record at a time (each encoded on arrival, its arrays no longer needed), then
+        published as `write_shard` would publish the same records."""
+        _check_shard_key(shard_key)
+        return ShardStream(self, shard_key)
 
     def _encode_frame(self, record: FrameRecord, shard_key: str) -> tuple[dict, list[tuple[str, bytes]]]:
         """Manifest row (offsets still missing) and tar members of one checked record."""
@@ -241,3 +232,36 @@ class DatasetWriter:
         check_unique(new)
         atomic_put(self._fs, f"{self._path}/{METADATA_NAME}", metadata_bytes(self.metadata))
         return publish_fragments(self._fs, self._path, ordered(new)) if rows else []
+
+
+class ShardStream:
+    """One shard being filled by `add` (records encoded at once; only their compressed members are kept)
+    and published by `publish` (frame-key order, atomic), with the same bytes as `DatasetWriter.write_shard`."""
+
+    def __init__(self, writer: DatasetWriter, shard_key: str) -> None:
+        self._writer = writer
+        self._key = shard_key
+        self._frames: dict[str, tuple[dict, list[tuple[str, bytes]]]] = {}
+
+    def add(self, record: FrameRecord) -> None:
+        """Check and encode one frame; raises InvalidFrameError on a bad record or a repeated frame key."""
+        if record.key in self._frames:
+            raise InvalidFrameError(f"shard {self._key!r}: two records share a frame key (log, frame_index)")
+        self._frames[record.key] = self._writer._encode_frame(record, self._key)
+
+    def publish(self) -> list[dict]:
+        """Write the shard (atomic) and return its manifest rows, in frame-key order."""
+        members: list[tuple[str, bytes]] = []
+        rows = []
+        for key in sorted(self._frames):
+            row, frame_members = self._frames[key]
+            members += frame_members
+            rows.append(row)
+        data, spans = pack_tar(members)
+        for row in rows:
+            for name, spec in MEMBERS.items():
+                span = spans.get(f"{row['key']}.{spec.suffix}")
+                if span is not None:
+                    row[f"{name}_offset"], row[f"{name}_nbytes"] = span
+        atomic_put(self._writer._fs, shard_path(self._writer._path, self._key), data)
+        return rows

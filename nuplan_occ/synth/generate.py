@@ -92,14 +92,17 @@ def _params(preset: Preset, options: SynthOptions, logs: int, seconds: float, se
 
 def synthesize(out_root: Path, logs: int = 1, seconds: float = 10.0, seed: int = 0, preset: str = "small",
                options: SynthOptions | None = None, truth_rate_hz: float = 20.0,
-               progress: Callable[[str], None] | None = None, location: str = "us-nv-las-vegas-strip") -> SynthResult:
+               progress: Callable[[str], None] | None = None, location: str = "us-nv-las-vegas-strip",
+               scene_seconds: float | None = None) -> SynthResult:
     """Write `logs` synthetic logs of `seconds` each (20 Hz sweeps), their map and their truth under out_root.
+    scene_seconds: scene length (None: the preset's, at least 5 scenes per log; see logbuild.build_log).
 
     truth_rate_hz must divide 20 (truth every 20 / rate frames). progress(str) receives one line per step.
     Raises ValueError on a bad preset, rate or duration.
     """
-    if logs < 1 or seconds <= 0:
-        raise ValueError(f"synthesize: need logs >= 1 and seconds > 0, got logs={logs}, seconds={seconds}")
+    if logs < 1 or seconds <= 0 or (scene_seconds is not None and scene_seconds <= 0):
+        raise ValueError(f"synthesize: need logs >= 1, seconds > 0 and scene_seconds > 0, got logs={logs}, seconds={seconds}, "
+                         f"scene_seconds={scene_seconds}")
     every = 20.0 / truth_rate_hz if truth_rate_hz > 0 else 0.0
     if every < 1 or abs(every - round(every)) > 1e-9:
         raise ValueError(f"synthesize: truth_rate_hz must be 20 / n for an integer n >= 1, got {truth_rate_hz}")
@@ -119,7 +122,7 @@ def synthesize(out_root: Path, logs: int = 1, seconds: float = 10.0, seed: int =
         start = log_start(seed, log_index)
         start_us = int(start.timestamp()) * 1_000_000
         world = build_world(spec, opts, seed, log_index, seconds, start_us, location)
-        plan = build_log(world, seconds, seed, log_index, start)
+        plan = build_log(world, seconds, seed, log_index, start, scene_seconds)
         frame_pass = _FramePass(world, plan, writer, log_index, int(round(every)))
         say(f"log {log_index + 1}/{logs} {plan.content.meta.logfile}: {frame_count(seconds)} frames, "
             f"{len(world.agents)} agents, ego turns {world.ego.turns[:3]}")

@@ -43,9 +43,10 @@ def frame_count(seconds: float) -> int:
     return max(1, int(round(seconds * 1e6 / FRAME_US)))
 
 
-def scene_count(seconds: float, scene_seconds: float) -> int:
-    """Scenes per log: about seconds / scene_seconds, at least 5."""
-    return max(5, int(round(seconds / scene_seconds)))
+def scene_count(seconds: float, scene_seconds: float, min_scenes: int = 5) -> int:
+    """Scenes per log: about seconds / scene_seconds, at least min_scenes (the devkit's scene enumeration
+    wants 5; a real-scale log may be one scene spanning the whole log)."""
+    return max(min_scenes, int(round(seconds / scene_seconds)))
 
 
 def cameras(rng: np.random.Generator) -> list[CameraCalibration]:
@@ -74,8 +75,11 @@ class LogPlan:
     frame_scene: list[SceneRecord]
 
 
-def build_log(world: World, seconds: float, seed: int, log_index: int, start: datetime) -> LogPlan:
-    """LogContent of `world` over `seconds` (frames at 20 Hz from world.start_us)."""
+def build_log(world: World, seconds: float, seed: int, log_index: int, start: datetime,
+              scene_seconds: float | None = None) -> LogPlan:
+    """LogContent of `world` over `seconds` (frames at 20 Hz from world.start_us). scene_seconds: length of
+    a scene (None: the preset's, with at least 5 scenes per log; given: exactly about seconds / scene_seconds
+    scenes, at least one)."""
     rng = np.random.default_rng([seed, log_index, 0x70CE])
     opts = world.options
     n_frames = frame_count(seconds)
@@ -93,7 +97,8 @@ def build_log(world: World, seconds: float, seed: int, log_index: int, start: da
     ego_poses = [EgoPoseRecord(tok, int(world.start_us + t), T_log[k], state["velocity"][k], state["acceleration"][k],
                                state["angular_rate"][k], world.epsg) for k, (tok, t) in enumerate(zip(ego_tokens, ego_us))]
 
-    n_scenes = scene_count(seconds, world.preset.scene_seconds)
+    n_scenes = (scene_count(seconds, world.preset.scene_seconds) if scene_seconds is None
+                else scene_count(seconds, scene_seconds, min_scenes=1))
     bounds = np.linspace(0, n_frames, n_scenes + 1).round().astype(int)
     scenes = []
     frame_scene = []

@@ -1,4 +1,4 @@
-"""A small synthetic nuPlan data root shared by the end-to-end build tests (made once per session)."""
+"""Fixtures of the end-to-end build tests (the synthetic data root `synthetic_root` is in tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -7,15 +7,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
-@pytest.fixture(scope="session")
-def synthetic_root(tmp_path_factory) -> Path:
-    from nuplan_occ.synth.generate import synthesize
-
-    root = tmp_path_factory.mktemp("synth") / "data"
-    synthesize(root, logs=1, seconds=1.2, seed=7, preset="small")
-    return root
-
 
 @pytest.fixture
 def data_root(synthetic_root, tmp_path) -> Path:

@@ -88,7 +88,7 @@ def test_resume_after_sigkill_gives_identical_output(synthetic_root, reference_b
                "--set", "load.context_seconds=0.25"]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and not list((out / "work").rglob("reconstruct/*.pkl.zst")):
+    while time.monotonic() < deadline and not list((out / "work").rglob("lidar_rays/*.pkl.zst")):
         time.sleep(0.05)
     os.killpg(process.pid, signal.SIGKILL)
     process.wait()

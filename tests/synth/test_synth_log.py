@@ -112,3 +112,12 @@ def test_bad_arguments_raise(tmp_path):
         synthesize(tmp_path, preset="huge")
     with pytest.raises(ValueError, match="truth_rate_hz"):
         synthesize(tmp_path, truth_rate_hz=7.0)
+
+
+def test_scene_seconds_lets_one_scene_span_the_log(tmp_path):
+    result = synthesize(tmp_path, logs=1, seconds=SECONDS, seed=3, scene_seconds=SECONDS, truth_rate_hz=10.0)
+    assert result.truth_frames == 5
+    with NuplanLog(result.db_paths[0]) as log:
+        assert len(log.scenes) == 1 and len(log.frames_of_scene(log.scenes[0].token)) == 10
+    with pytest.raises(ValueError, match="scene_seconds"):
+        synthesize(tmp_path / "bad", logs=1, seconds=SECONDS, scene_seconds=0.0)
