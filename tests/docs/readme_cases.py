@@ -13,10 +13,11 @@ Extraction (generic, so new README lines are picked up without touching this tes
 Cases run in README order (later commands use what earlier ones wrote, e.g. occgen's ckpt/).
 
 Placeholders, all real paths of the workspace (a temporary folder, the current directory of every case):
-- `$NUPLAN_DATA_ROOT`: the session's synthetic nuPlan data root (`synthetic_root`, read only);
+- `$NUPLAN_DATA_ROOT`: a synthetic nuPlan data root (`readme_root`: one 1.2 s scene, read only);
 - `out/`: the dataset built by the README's first `nuplan-occ build ... out/` line, run once by the
   session fixture (its own case then checks that build);
 - `truth/`: the synthetic data root's exact truth dataset;
+- `RELEASE/`: the shared build's frames written in the released Nuplan-Occ's dense layout;
 - any other relative path (frame.png, occ3d/, ckpt/, ...) is written by the command that names it.
 Promises checked besides the exit code: files named by `--screenshot`, `--json`, `--preview` exist and
 are not empty; `--out` and export destinations hold files; a build publishes ok frames.
