@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from nuplan_occ.dataset import open_dataset
+from nuplan_occ.storage.digest import content_digests
 from nuplan_occ.io.maps import NuplanMap, find_map
 from nuplan_occ.io.reader import NuplanLog, points_to_ego
 from nuplan_occ.synth import render_preview, synthesize
@@ -33,7 +34,12 @@ def _content(path: Path) -> bytes:
 
 
 def _digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(_content(p)).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+    """sha256 of every file of the data root, the truth dataset's published content taken as
+    `content_digests` gives it (its manifest fragments are named by commit ids, new every run)."""
+    truth = root / "truth"
+    files = {str(p.relative_to(root)): hashlib.sha256(_content(p)).hexdigest()
+             for p in sorted(root.rglob("*")) if p.is_file() and truth not in p.parents}
+    return {**files, **{f"truth/{item}": digest for item, digest in content_digests(str(truth)).items()}}
 
 
 @pytest.fixture(scope="module")
