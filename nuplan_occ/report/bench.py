@@ -3,7 +3,7 @@ scenes (no shard is read: unchanged scenes are not rendered). Measures, per scen
 scene summaries, the content keys of every scene, and writing the paginated scene table, the gallery and
 the index page; plus the size of the index page.
 
-    python -m nuplan_occ.report.bench --scenes 1000 19000 --frames 190 --out bench/report_scale.md
+    python -m nuplan_occ.report.bench --scenes 1000 19000 --frames 190 --out bench/build-report-scale.md
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", type=int, nargs="+", default=[1000, 19000])
     parser.add_argument("--frames", type=int, default=190)
-    parser.add_argument("--out", type=Path, default=Path("bench/report_scale.md"))
+    parser.add_argument("--out", type=Path, default=Path("bench/build-report-scale.md"))
     args = parser.parse_args()
     results = [measure(s, args.frames) for s in args.scenes]
     steps = list(results[0]["seconds"])
