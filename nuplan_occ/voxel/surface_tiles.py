@@ -108,9 +108,10 @@ def build_surface_tiles(vertices: np.ndarray, faces: np.ndarray, tile_m: float =
     v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
     f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
     if len(f):
-        corner = [[v[f[:, n], a] for n in range(3)] for a in range(2)]
-        low = np.stack([np.minimum(np.minimum(c[0], c[1]), c[2]) for c in corner], axis=1)
-        high = np.stack([np.maximum(np.maximum(c[0], c[1]), c[2]) for c in corner], axis=1)
+        low, high = np.empty((len(f), 2)), np.empty((len(f), 2))
+        for a in range(2):
+            c = [v[f[:, n], a] for n in range(3)]
+            low[:, a], high[:, a] = np.minimum(np.minimum(c[0], c[1]), c[2]), np.maximum(np.maximum(c[0], c[1]), c[2])
     else:
         low = high = v[:, :2]
     is_wide = np.any(high - low > tile_m, axis=1)
