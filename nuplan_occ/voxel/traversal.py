@@ -10,10 +10,10 @@ NUDGE_VOXELS (two planes crossed within the nudge) are therefore skipped; where 
 planes at exactly the same t (through a lattice edge) both entries give the diagonal voxel, never a
 corner neighbour.
 
-The crossings of one axis are walked in order of t ((k - o) / d is monotonic in k), so a walk stops at
-the first t >= t1, or at the first occupied voxel (`mark_visible_to_first_hit`). Every crossing time is
-computed from its plane index, never accumulated, so the entries do not depend on the walk order.
-Flat voxel indices are C order over the grid's (X, Y, Z).
+The crossings of one axis are walked in order of t ((k - o) / d is monotonic in k), WALK_PAD at a time
+in branch-free (vectorized) runs; a camera ray's walks stop at its first occupied voxel
+(`mark_visible_to_first_hit`). Every crossing time is computed from its plane index, never accumulated,
+so the entries do not depend on the walk order. Flat voxel indices are C order over the grid's (X, Y, Z).
 """
 
 from __future__ import annotations
@@ -28,86 +28,106 @@ from nuplan_occ.grid import GridSpec
 NUDGE_VOXELS = 1e-6
 """How far after a plane crossing (voxels along the segment) its entered voxel is evaluated."""
 
+WALK_PAD = 16
+"""Crossings are computed in whole runs of this many (a multiple of the SIMD width)."""
+
 
 def grid_args(grid: GridSpec) -> tuple[np.ndarray, float, np.ndarray]:
     """(lower corner (3,) m, voxel size m, shape (3,) int64) of `grid`, as the kernels take them."""
     return grid.lower, float(grid.voxel_size), np.asarray(grid.shape, dtype=np.int64)
 
 
-@numba.njit(cache=True)
-def _setup(start, end, lower, voxel_size, shape, o, d, first, last):
-    """Fill o, d (voxel units), first, last (planes crossed per axis, within [0, shape]; unused where d is 0)
-    of the segment start -> end (3,) m; returns (t0, t1, nudge / |d|), t0 >= t1 when it misses the grid box or is not
-    finite."""
-    t0, t1 = 0.0, 1.0
-    for a in range(3):
-        o[a] = (start[a] - lower[a]) / voxel_size
-        d[a] = (end[a] - lower[a]) / voxel_size - o[a]
-        if not (math.isfinite(o[a]) and math.isfinite(d[a])):
-            return np.inf, -np.inf, 0.0
-        if d[a] == 0.0:
-            if not (o[a] >= 0.0 and o[a] < shape[a]):
-                t0 = np.inf
-            continue
-        ta = (0.0 - o[a]) / d[a]
-        tb = (shape[a] - o[a]) / d[a]
-        t0 = max(t0, min(ta, tb))
-        t1 = min(t1, max(ta, tb))
-    if not t0 < t1:
-        return t0, t1, 0.0
-    for a in range(3):
-        p, q = o[a] + t0 * d[a], o[a] + t1 * d[a]
-        first[a] = max(math.floor(min(p, q)) + 1, 0)  # planes beyond [0, shape] enter no voxel of the grid
-        last[a] = min(math.floor(max(p, q)), shape[a])
-    norm = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-    return t0, t1, NUDGE_VOXELS / max(norm, 1e-12)
+@numba.njit(cache=True, inline="always")
+def _axis(start, end, lower, voxel_size, n):
+    """o, d (voxel units) of one axis of the segment start -> end (m) and its parameter interval
+    [t_lo, t_hi] inside [0, n] (all t, or none, where d is 0)."""
+    o = (start - lower) / voxel_size
+    d = (end - lower) / voxel_size - o
+    if d == 0.0:
+        if o >= 0.0 and o < n:
+            return o, d, -np.inf, np.inf
+        return o, d, np.inf, -np.inf
+    ta = (0.0 - o) / d
+    tb = (n - o) / d
+    return o, d, min(ta, tb), max(ta, tb)
 
 
-@numba.njit(cache=True)
-def _entry_voxel(o, d, t, inv, shape):
-    """Flat index of the voxel entered at parameter t (-1 outside the grid)."""
+@numba.njit(cache=True, inline="always")
+def _segment(starts, ends, r, lower, voxel_size, shape):
+    """(meets the grid box, o (3), d (3), t0, t1, nudge / |d|) of segment r; False for a segment that
+    misses the box or is not finite."""
+    ox, dx, lx, hx = _axis(starts[r, 0], ends[r, 0], lower[0], voxel_size, shape[0])
+    oy, dy, ly, hy = _axis(starts[r, 1], ends[r, 1], lower[1], voxel_size, shape[1])
+    oz, dz, lz, hz = _axis(starts[r, 2], ends[r, 2], lower[2], voxel_size, shape[2])
+    t0 = max(max(max(lx, ly), lz), 0.0)
+    t1 = min(min(min(hx, hy), hz), 1.0)
+    finite = (math.isfinite(ox) and math.isfinite(oy) and math.isfinite(oz)
+              and math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz))
+    inv = NUDGE_VOXELS / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+    return finite and t0 < t1, ox, oy, oz, dx, dy, dz, t0, t1, inv
+
+
+@numba.njit(cache=True, inline="always")
+def _planes(o, d, t0, t1, n):
+    """(first plane, plane step, number of planes) crossed in order of t by one axis o + t d, t in
+    [t0, t1], within [0, n] (planes beyond it enter no voxel of the grid)."""
+    if d == 0.0:
+        return 0, 0, 0
+    p, q = o + t0 * d, o + t1 * d
+    first = max(math.floor(min(p, q)) + 1, 0)
+    last = min(math.floor(max(p, q)), n)
+    count = max(last - first + 1, 0)
+    return (first, 1, count) if d > 0.0 else (last, -1, count)
+
+
+@numba.njit(cache=True, inline="always")
+def _voxel(ox, oy, oz, dx, dy, dz, t, inv, fx, fy, fz, ny, nz):
+    """Flat index of the voxel holding o + (t + inv) d (-1 outside the grid of (fx, fy, fz) voxels)."""
     step = t + inv
-    x = o[0] + step * d[0]
-    y = o[1] + step * d[1]
-    z = o[2] + step * d[2]
-    if x < 0.0 or x >= shape[0] or y < 0.0 or y >= shape[1] or z < 0.0 or z >= shape[2]:
+    x, y, z = ox + step * dx, oy + step * dy, oz + step * dz
+    if x < 0.0 or x >= fx or y < 0.0 or y >= fy or z < 0.0 or z >= fz:
         return -1
-    return (int(x) * shape[1] + int(y)) * shape[2] + int(z)
+    return (int(x) * ny + int(y)) * nz + int(z)
 
 
-@numba.njit(cache=True)
-def _walk_start(d, first, last, a):
-    """(first plane, plane step, number of planes) of the crossings of axis a, in order of t."""
-    if d[a] > 0.0:
-        return first[a], 1, last[a] - first[a] + 1
-    if d[a] < 0.0:
-        return last[a], -1, last[a] - first[a] + 1
-    return 0, 0, 0
+@numba.njit(cache=True, inline="always")
+def _walk(oa, da, k0, dk, n, i0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base):
+    """Record crossings i0 .. i0 + WALK_PAD - 1 (plane k0 + i dk of the axis o_a + t d_a) at
+    walk_t[base + i], walk_v[base + i]: (t, entered voxel), voxel -1 past the n planes, outside the grid or
+    where t >= t1. Branch-free, so it vectorizes."""
+    for i in range(i0, i0 + WALK_PAD):
+        t = ((k0 + i * dk) - oa) / da
+        step = t + inv
+        x, y, z = ox + step * dx, oy + step * dy, oz + step * dz
+        inside = (i < n) & (t < t1) & (x >= 0.0) & (x < fx) & (y >= 0.0) & (y < fy) & (z >= 0.0) & (z < fz)
+        v = (int(x) * ny + int(y)) * nz + int(z)
+        walk_t[base + i] = t
+        walk_v[base + i] = v if inside else -1
 
 
 @numba.njit(cache=True)
 def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
     """out[v] = value for every entry v of the segments starts -> ends ((N, 3) m; lower, voxel_size,
     shape: `grid_args`; out: flat grid)."""
-    o, d = np.empty(3), np.empty(3)
-    first, last = np.empty(3, np.int64), np.empty(3, np.int64)
+    fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
+    ny, nz = shape[1], shape[2]
+    walk_t, walk_v = np.empty(WALK_PAD), np.empty(WALK_PAD, np.int64)
     for r in range(starts.shape[0]):
-        t0, t1, inv = _setup(starts[r], ends[r], lower, voxel_size, shape, o, d, first, last)
-        if not t0 < t1:
+        meets, ox, oy, oz, dx, dy, dz, t0, t1, inv = _segment(starts, ends, r, lower, voxel_size, shape)
+        if not meets:
             continue
-        v = _entry_voxel(o, d, t0, inv, shape)
+        v = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
         if v >= 0:
             out[v] = value
         for a in range(3):
-            k, dk, n = _walk_start(d, first, last, a)
-            for _ in range(n):
-                t = (k - o[a]) / d[a]
-                if t >= t1:
-                    break
-                v = _entry_voxel(o, d, t, inv, shape)
-                if v >= 0:
-                    out[v] = value
-                k += dk
+            oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
+            k0, dk, n = _planes(oa, da, t0, t1, shape[a])
+            for i0 in range(0, n, WALK_PAD):
+                _walk(oa, da, k0 + i0 * dk, dk, n - i0, 0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz,
+                      walk_t, walk_v, 0)
+                for m in range(WALK_PAD):
+                    if walk_v[m] >= 0:
+                        out[walk_v[m]] = value
 
 
 @numba.njit(cache=True)
@@ -116,49 +136,54 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
     first blocking entry's t (the least t >= t_block of an entry whose voxel is occupied; all entries when
     none blocks). occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
 
-    Per segment, each axis' walk is recorded (t, voxel) until its first blocking entry or until past the
-    t_hit found so far (the axis with the most crossings first: the others then stop early); the
-    recorded entries with t <= t_hit are then marked."""
-    o, d = np.empty(3), np.empty(3)
-    first, last = np.empty(3, np.int64), np.empty(3, np.int64)
-    size = shape.max() + 2
-    walk_t, walk_v = np.empty((3, size)), np.empty((3, size), np.int64)
-    walked = np.zeros(3, np.int64)
+    Per segment, each axis' crossings are recorded WALK_PAD at a time and scanned in order of t until the
+    first blocking one or past the t_hit found so far (the axis with the most crossings first: the others
+    then stop early); the recorded entries with t <= t_hit are then marked."""
+    fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
+    ny, nz = shape[1], shape[2]
+    size = shape.max() + 1 + WALK_PAD
+    walk_t, walk_v = np.empty(3 * size), np.empty(3 * size, np.int64)
     for r in range(starts.shape[0]):
-        t0, t1, inv = _setup(starts[r], ends[r], lower, voxel_size, shape, o, d, first, last)
-        if not t0 < t1:
+        meets, ox, oy, oz, dx, dy, dz, t0, t1, inv = _segment(starts, ends, r, lower, voxel_size, shape)
+        if not meets:
             continue
         t_hit = np.inf
-        v_start = _entry_voxel(o, d, t0, inv, shape)
+        v_start = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
         if v_start >= 0 and occupied[v_start] and t0 >= t_block:
             t_hit = t0
-        a0 = 0
-        if abs(d[1]) > abs(d[a0]):
-            a0 = 1
-        if abs(d[2]) > abs(d[a0]):
-            a0 = 2
-        for i in range(3):
-            a = (a0 + i) % 3
-            k, dk, n = _walk_start(d, first, last, a)
-            m = 0
-            for _ in range(n):
-                t = (k - o[a]) / d[a]
-                if t >= t1 or t > t_hit:
-                    break
-                v = _entry_voxel(o, d, t, inv, shape)
-                walk_t[a, m] = t
-                walk_v[a, m] = v
-                m += 1
-                if v >= 0 and occupied[v] and t >= t_block:
-                    t_hit = t
-                    break
-                k += dk
-            walked[a] = m
+        ax, ay, az = abs(dx), abs(dy), abs(dz)
+        a0 = 0 if (ax >= ay and ax >= az) else (1 if ay >= az else 2)
+        walked_x = walked_y = walked_z = 0
+        for j in range(3):
+            a = (a0 + j) % 3
+            oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
+            k0, dk, n = _planes(oa, da, t0, t1, shape[a])
+            base = a * size
+            m, stop = 0, False
+            while m < n and not stop:
+                _walk(oa, da, k0, dk, n, m, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base)
+                end = min(m + WALK_PAD, n)
+                while m < end:
+                    t, v = walk_t[base + m], walk_v[base + m]
+                    if t > t_hit:
+                        stop = True
+                        break
+                    m += 1
+                    if v >= 0 and occupied[v] and t >= t_block:
+                        t_hit, stop = t, True
+                        break
+            if a == 0:
+                walked_x = m
+            elif a == 1:
+                walked_y = m
+            else:
+                walked_z = m
         if v_start >= 0 and t0 <= t_hit:
             visible[v_start] = True
         for a in range(3):
-            for m in range(walked[a]):
-                if walk_t[a, m] > t_hit:
+            base = a * size
+            for m in range(walked_x if a == 0 else (walked_y if a == 1 else walked_z)):
+                if walk_t[base + m] > t_hit:
                     break
-                if walk_v[a, m] >= 0:
-                    visible[walk_v[a, m]] = True
+                if walk_v[base + m] >= 0:
+                    visible[walk_v[base + m]] = True
