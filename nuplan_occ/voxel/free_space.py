@@ -62,8 +62,8 @@ def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: np.ndarray, 
     """(N,) bool: voxel centres (N, 3, this frame's ego frame, m) that lie in a voxel another frame's rays
     crossed (set in that frame's `packed_free` bits free_bits[f] (F, n_bytes), its grid reached by
     T_other_from_ego[f] (F, 4, 4)). The background is static: space any frame saw through holds no
-    background, whatever moved there at other times. A centre stops at the first frame that saw through it,
-    so list the likeliest frames (this one, then the nearest) first."""
+    background, whatever moved there at other times. A centre stops at the first frame that saw through it:
+    the cost is (centres x frames) lookups at most."""
     n_bytes = (int(np.prod(grid.shape)) + 7) // 8
     bits = np.asarray(free_bits, dtype=np.uint8)
     transforms = np.asarray(T_other_from_ego, dtype=np.float64).reshape(-1, 4, 4)
