@@ -11,9 +11,19 @@ from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.io.types import CameraCalibration
 from nuplan_occ.voxel import voxelize
-from nuplan_occ.voxel.visibility import _clip_to_box, camera_rays, camera_visibility, lidar_observation
+from nuplan_occ.voxel.visibility import camera_rays, camera_visibility, lidar_observation
 
 GRID = GridSpec(x_min=-6, x_max=6, y_min=-5, y_max=5, z_min=-2, z_max=2, voxel_size=0.25)
+
+
+def clip_to_box(o, d, shape):
+    """Parameter range [t0, t1] within [0, 1] of segments o + t d (N, 3, voxel units) inside [0, shape]."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (0.0 - o) / d
+        tb = (shape - o) / d
+    t_lo = np.where(d == 0, np.where((o >= 0) & (o < shape), -np.inf, np.inf), np.minimum(ta, tb))
+    t_hi = np.where(d == 0, np.where((o >= 0) & (o < shape), np.inf, -np.inf), np.maximum(ta, tb))
+    return np.maximum(t_lo.max(axis=1), 0.0), np.minimum(t_hi.min(axis=1), 1.0)
 
 
 def reference_entries(starts, ends, grid):
@@ -21,7 +31,7 @@ def reference_entries(starts, ends, grid):
     shape = np.asarray(grid.shape)
     o_all = (starts - grid.lower) / grid.voxel_size
     d_all = (ends - grid.lower) / grid.voxel_size - o_all
-    t0, t1 = _clip_to_box(o_all, d_all, shape.astype(np.float64))
+    t0, t1 = clip_to_box(o_all, d_all, shape.astype(np.float64))
     rays = np.flatnonzero(t0 < t1)
     o, d, t0, t1 = o_all[rays], d_all[rays], t0[rays], t1[rays]
     a, b = o + t0[:, None] * d, o + t1[:, None] * d
