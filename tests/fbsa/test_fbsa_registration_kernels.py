@@ -1,0 +1,68 @@
+"""The kernels behind pose refinement against exact answers: tracked nearest neighbours against fresh kd-tree
+queries, PCA normals against exact planes and Open3D, voxel reductions against brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.plane_normals import LazyNormals, pca_normals
+from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
+from nuplan_occ.fbsa.voxel_reduce import first_in_voxel, voxel_centroids, voxel_keys
+
+
+def test_tracked_nearest_equals_fresh_queries_while_points_move():
+    rng = np.random.default_rng(0)
+    target = rng.uniform(-5, 5, (4000, 3))
+    source = rng.uniform(-6, 6, (1500, 3))
+    tree = cKDTree(target)
+    nearest = TrackedNearest(tree, len(source), margin_m=0.1)
+    # an ICP-like sequence: big steps first, then ever smaller ones, with shrinking bounds
+    for step, bound in [(0.3, 1.5), (0.1, 1.5), (0.02, 0.6), (0.0, 0.6), (0.005, 0.25), (1e-4, 0.25), (1e-6, 0.25)]:
+        R = Rotation.from_rotvec(rng.normal(size=3) * step / 10).as_matrix()
+        source = source @ R.T + rng.normal(size=3) * step
+        distance, index = tree.query(source, distance_upper_bound=bound)
+        expected = np.where(np.isfinite(distance), index, -1)
+        np.testing.assert_array_equal(nearest.query(source, bound), expected)
+    assert nearest.queried < 3 * len(source)  # 7 calls, most points answered from memory
+
+
+def test_pca_normals_of_exact_planes_and_open3d():
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(-2, 2, (2, 3000))
+    normal = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    a = np.cross(normal, [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    plane = u[:, None] * a + v[:, None] * b + 7.0
+    tree = cKDTree(plane)
+    got = LazyNormals(tree, radius_m=1.0, max_nn=20).of(np.arange(0, 3000, 7))
+    np.testing.assert_allclose(np.abs(got @ normal), 1.0, atol=1e-9)
+
+    cloud = rng.normal(size=(2000, 3)) * [3.0, 1.0, 0.2]
+    o3d_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+    o3d_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.8, max_nn=20))
+    lazy = LazyNormals(cKDTree(cloud), radius_m=0.8, max_nn=20)
+    ours = lazy.of(np.r_[np.arange(2000)[::-1], 5, 5])[:2000][::-1]
+    cosine = np.abs(np.sum(ours * np.asarray(o3d_cloud.normals), axis=1))
+    assert np.quantile(cosine, 0.99) > 1 - 1e-9 and lazy.known.all()
+
+    isolated = pca_normals(np.zeros((2, 3)), np.array([[0, 1, 2, 2]]))  # two neighbours only
+    np.testing.assert_array_equal(isolated, [[0.0, 0.0, 1.0]])
+
+
+def test_voxel_reductions_against_brute_force():
+    rng = np.random.default_rng(2)
+    points = np.round(rng.uniform(-3, 3, (5000, 3)), 2)  # many points share voxels, some lie on faces
+    cells = np.floor(points / 0.5).astype(np.int64)
+    unique, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+    np.testing.assert_array_equal(first_in_voxel(points, 0.5), np.sort(first))
+    expected = np.stack([points[inverse.ravel() == c].mean(axis=0) for c in range(len(unique))])
+    np.testing.assert_allclose(voxel_centroids(points, 0.5), expected, atol=1e-12)  # key order = index order
+    assert len(voxel_centroids(np.zeros((0, 3)), 0.5)) == 0 and len(first_in_voxel(np.zeros((0, 3)), 0.5)) == 0
+    with pytest.raises(FbsaInputError, match="beyond"):
+        voxel_keys(np.array([[3e5, 0.0, 0.0]]), 0.2)
