@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.voxel_reduce import voxel_keys
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.io.types import Boxes
 
@@ -32,8 +33,7 @@ class BackgroundAggregate:
 
 def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """Sorted indices of the first point (in input order) of every occupied voxel of size voxel_m (m)."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)  # one int64 per voxel: a 1-D unique
     return np.sort(first)
 
 

@@ -39,10 +39,3 @@ def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
     counts = np.diff(np.r_[starts, len(ordered)])
     return np.add.reduceat(pts[order], starts, axis=0) / counts[:, None]
 
-
-def first_in_voxel(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Sorted (K,) indices of the first point (in input order) of every occupied voxel of points (N, 3)."""
-    if not len(points):
-        return np.zeros(0, np.int64)
-    _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)
-    return np.sort(first)

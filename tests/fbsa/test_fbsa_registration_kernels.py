@@ -10,9 +10,10 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.aggregate import voxel_first_indices
 from nuplan_occ.fbsa.plane_normals import LazyNormals, pca_normals
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
-from nuplan_occ.fbsa.voxel_reduce import first_in_voxel, voxel_centroids, voxel_keys
+from nuplan_occ.fbsa.voxel_reduce import voxel_centroids, voxel_keys
 
 
 def test_tracked_nearest_equals_fresh_queries_while_points_move():
@@ -60,9 +61,9 @@ def test_voxel_reductions_against_brute_force():
     points = np.round(rng.uniform(-3, 3, (5000, 3)), 2)  # many points share voxels, some lie on faces
     cells = np.floor(points / 0.5).astype(np.int64)
     unique, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
-    np.testing.assert_array_equal(first_in_voxel(points, 0.5), np.sort(first))
+    np.testing.assert_array_equal(voxel_first_indices(points, 0.5), np.sort(first))
     expected = np.stack([points[inverse.ravel() == c].mean(axis=0) for c in range(len(unique))])
     np.testing.assert_allclose(voxel_centroids(points, 0.5), expected, atol=1e-12)  # key order = index order
-    assert len(voxel_centroids(np.zeros((0, 3)), 0.5)) == 0 and len(first_in_voxel(np.zeros((0, 3)), 0.5)) == 0
+    assert len(voxel_centroids(np.zeros((0, 3)), 0.5)) == 0 and len(voxel_first_indices(np.zeros((0, 3)), 0.5)) == 0
     with pytest.raises(FbsaInputError, match="beyond"):
         voxel_keys(np.array([[3e5, 0.0, 0.0]]), 0.2)
