@@ -1,9 +1,11 @@
-"""Distances from every point of a cloud to its k nearest points of the same cloud (itself included), by a
-compiled kd-tree: sliding-midpoint splits of the widest side into leaves of at most LEAF_SIZE points,
-then a depth-first search per point, nearer child first, pruned by each node's bounding box.
+"""k nearest points by a compiled kd-tree: sliding-midpoint splits of the widest side into leaves of at most
+LEAF_SIZE points, then a depth-first search per query, nearer child first, pruned by each node's bounding
+box and by the k-th best distance so far.
 
 Distances are sqrt(dx^2 + dy^2 + dz^2) in the points' frame (metres), each row sorted ascending: the
-same values as `cKDTree(points).query(points, k)[0]` (which k points a tie picks does not change them).
+same values as scipy's `cKDTree.query` (which of equally distant points a tie picks may differ, the
+distances do not). `knn_distances` gives every point's distances to its k nearest points of the same
+cloud (itself included); `KdTree` answers queries of other points, optionally within a bound.
 """
 
 from __future__ import annotations
@@ -82,35 +84,45 @@ def _box_distance2(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
 
 
 @numba.njit(cache=True)
-def _search(points: np.ndarray, k: int, leaf_size: int) -> np.ndarray:
-    order, start, end, child, lo, hi = _build(points, leaf_size)
+def _search(points: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
+            lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(distances (Q, k), indices (Q, k)): the k nearest points closer than sqrt(bound2) to each query,
+    ascending; inf and index len(points) where fewer lie that close. Queries are searched in query_order."""
     n = len(points)
-    out = np.empty((n, k))
+    distances = np.full((len(queries), k), np.inf)
+    indices = np.full((len(queries), k), n, np.int64)
     best = np.empty(k)
+    best_index = np.empty(k, np.int64)
     stack = np.empty(2 * n + 1, np.int64)
-    stack_d2 = np.empty(2 * n + 1)  # squared distance from the point to the node's box
-    for q in order:  # tree order: consecutive searches visit the same nodes
-        p = points[q]
+    stack_d2 = np.empty(2 * n + 1)  # squared distance from the query to the node's box
+    for q in query_order:
+        p = queries[q]
         have = 0
+        worst = bound2  # a candidate must be nearer than this: the bound, then the k-th best so far
         stack[0], stack_d2[0] = 0, 0.0
         top = 1
         while top:
             top -= 1
             node = stack[top]
-            if have == k and stack_d2[top] >= best[k - 1]:
+            if stack_d2[top] >= worst:
                 continue
             first = child[node]
             if first < 0:
                 for i in range(start[node], end[node]):
                     r = points[order[i]]
                     d2 = (p[0] - r[0]) ** 2 + (p[1] - r[1]) ** 2 + (p[2] - r[2]) ** 2
-                    if have < k or d2 < best[k - 1]:
+                    if d2 < worst:
                         slot = have if have < k else k - 1
                         while slot > 0 and best[slot - 1] > d2:  # insertion into the sorted k best
                             best[slot] = best[slot - 1]
+                            best_index[slot] = best_index[slot - 1]
                             slot -= 1
                         best[slot] = d2
+                        best_index[slot] = order[i]
                         have = min(have + 1, k)
+                        if have == k:
+                            worst = best[k - 1]
                 continue
             a, b = first, first + 1  # push the farther child first, so the nearer one is searched first
             da, db = _box_distance2(p, lo[a], hi[a]), _box_distance2(p, lo[b], hi[b])
@@ -119,15 +131,33 @@ def _search(points: np.ndarray, k: int, leaf_size: int) -> np.ndarray:
             stack[top], stack_d2[top] = a, da
             stack[top + 1], stack_d2[top + 1] = b, db
             top += 2
-        for j in range(k):
-            out[q, j] = math.sqrt(best[j])
-    return out
+        for j in range(have):
+            distances[q, j] = math.sqrt(best[j])
+            indices[q, j] = best_index[j]
+    return distances, indices
+
+
+class KdTree:
+    """A kd-tree over points (n, 3) for nearest-point queries (frame of the points, metres); `data` the
+    points, `n` their number (the names of scipy's cKDTree, whose query it answers the same way)."""
+
+    def __init__(self, points: np.ndarray):
+        self.data = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        self.n = len(self.data)
+        self._nodes = _build(self.data, LEAF_SIZE)
+
+    def query(self, queries: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """(distances (Q, k), indices (Q, k)): ascending distances to the k nearest points closer than
+        distance_upper_bound to each of queries (Q, 3), and their indices; inf and n where fewer are."""
+        pts = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+        return _search(self.data, *self._nodes, pts, np.arange(len(pts)), int(k), float(distance_upper_bound) ** 2)
 
 
 def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
-    """(N, k) ascending distances (m) from each point (N, 3) to its k nearest points, itself included;
-    requires 1 <= k <= N."""
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    if not 1 <= k <= len(pts):
-        raise ValueError(f"knn_distances: need 1 <= k <= {len(pts)} points, got k = {k}")
-    return _search(pts, k, LEAF_SIZE)
+    """(N, k) ascending distances (m) from each point (N, 3) to its k nearest points, itself included
+    (requires 1 <= k <= N); the points are searched in tree order, so consecutive searches share nodes."""
+    tree = KdTree(points)
+    if not 1 <= k <= tree.n:
+        raise ValueError(f"knn_distances: need 1 <= k <= {tree.n} points, got k = {k}")
+    return _search(tree.data, *tree._nodes, tree.data, tree._nodes[0], k, np.inf)[0]

@@ -14,7 +14,7 @@ import math
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
+from nuplan_occ.fbsa.knn import KdTree
 
 
 @numba.njit(cache=True)
@@ -56,7 +56,7 @@ def smallest_eigenvector(c00: float, c01: float, c02: float, c11: float, c12: fl
 @numba.njit(cache=True)
 def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     """(n, 3) normals from neighbours (n, k) int64 indices into points (m, 3); an index >= m is no
-    neighbour (cKDTree's fill value). Fewer than 3 neighbours give (0, 0, 1)."""
+    neighbour (the kd-tree's fill value). Fewer than 3 neighbours give (0, 0, 1)."""
     n, k = neighbours.shape
     m = len(points)
     normals = np.empty((n, 3))
@@ -90,9 +90,9 @@ def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
 
 
 class LazyNormals:
-    """Normals of the points (m, 3) of `tree` (a cKDTree), each computed the first time it is asked for."""
+    """Normals of the points (m, 3) of `tree` (fbsa.knn.KdTree), each computed the first time it is asked for."""
 
-    def __init__(self, tree: cKDTree, radius_m: float, max_nn: int):
+    def __init__(self, tree: KdTree, radius_m: float, max_nn: int):
         self.tree = tree
         self.radius_m = radius_m
         self.max_nn = max_nn

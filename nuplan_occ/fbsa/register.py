@@ -3,7 +3,7 @@
 Procedure (all in the "local" frame = the ego frame of logged frame 0, to keep coordinates small):
 1. Frame k's prior is the refined pose of frame k-1 times the LOGGED relative motion k-1 -> k.
 2. Its voxel-downsampled background is registered, coarse to fine, to a local map made of the last
-   `window` trusted sweeps (point-to-plane Gauss-Newton ICP in numpy with a Tukey kernel, scipy kd-tree
+   `window` trusted sweeps (point-to-plane Gauss-Newton ICP in numpy with a Tukey kernel, kd-tree (fbsa.knn)
    correspondences re-queried only where they can have changed (fbsa.tracked_nearest), PCA map normals
    computed only for the map points matched (fbsa.plane_normals); deterministic, unlike Open3D's parallel
    ICP). Sweeps and map are downsampled to voxel centroids on grids aligned with their frame's origin
@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
 from nuplan_occ.fbsa.voxel_reduce import voxel_centroids
@@ -117,7 +117,7 @@ class _Target:
     """The local map as ICP target: points (m, 3) local frame, their kd-tree and their normals."""
 
     points: np.ndarray
-    tree: cKDTree
+    tree: KdTree
     normals: LazyNormals
 
 
@@ -134,7 +134,7 @@ class _LocalMap:
     def target(self) -> _Target:
         p = self.params
         points = voxel_centroids(np.vstack(self.sweeps), p.map_voxel_m)
-        tree = cKDTree(points)
+        tree = KdTree(points)
         return _Target(points, tree, LazyNormals(tree, p.normal_radius_m, p.normal_max_nn))
 
 

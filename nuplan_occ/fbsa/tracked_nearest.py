@@ -1,7 +1,7 @@
 """Nearest-neighbour correspondences of a set of points that moves a little between queries (ICP).
 
 `TrackedNearest` answers, for each of n query points, "the nearest point of the target within `bound`"
-exactly as `cKDTree.query(x, distance_upper_bound=bound)` does (same index, up to exact distance ties),
+exactly as `tree.query(x, distance_upper_bound=bound)` (fbsa.knn.KdTree, as scipy's cKDTree) does (same index, up to exact distance ties),
 but asks the tree again only for the points whose answer can have changed since they were last asked.
 Each point remembers where it was asked (`anchor`), its nearest target point there and `clear`: a radius
 around the anchor inside which no other target point lies (the second-nearest distance, or the search
@@ -15,7 +15,7 @@ Frames: query and target points in one frame; metres.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+from nuplan_occ.fbsa.knn import KdTree
 
 TIE_SLACK_M = 1e-9
 """Margin (m) by which a remembered answer must win a comparison to be reused without a query."""
@@ -24,11 +24,11 @@ TIE_SLACK_M = 1e-9
 class TrackedNearest:
     """Exact nearest target point within a bound, for n query points that move between calls.
 
-    tree: cKDTree over the target points (m, 3); n: number of query points (the same points every call);
+    tree: kd-tree over the target points (m, 3) (fbsa.knn.KdTree); n: number of query points (the same points every call);
     margin_m: extra search radius of each tree query beyond the bound asked for, so a point can move this far
     before its answer expires. `queried` counts the points sent to the tree so far."""
 
-    def __init__(self, tree: cKDTree, n: int, margin_m: float):
+    def __init__(self, tree: KdTree, n: int, margin_m: float):
         self.tree = tree
         self.margin_m = margin_m
         self.anchor = np.full((n, 3), np.nan)
@@ -38,7 +38,7 @@ class TrackedNearest:
 
     def query(self, points: np.ndarray, bound: float) -> np.ndarray:
         """(n,) int64 index of the nearest target point within `bound` of each of points (n, 3), -1 where
-        there is none (cKDTree.query(points, distance_upper_bound=bound) up to exact ties)."""
+        there is none (tree.query(points, distance_upper_bound=bound) up to exact ties)."""
         target = self.tree.data
         delta = np.linalg.norm(points - self.anchor, axis=1)  # NaN before the first query: asked below
         has = self.nearest >= 0

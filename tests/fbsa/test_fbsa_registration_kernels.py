@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.aggregate import voxel_first_indices
+from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals, pca_normals
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
 from nuplan_occ.fbsa.voxel_reduce import voxel_centroids, voxel_keys
@@ -21,7 +22,7 @@ def test_tracked_nearest_equals_fresh_queries_while_points_move():
     target = rng.uniform(-5, 5, (4000, 3))
     source = rng.uniform(-6, 6, (1500, 3))
     tree = cKDTree(target)
-    nearest = TrackedNearest(tree, len(source), margin_m=0.1)
+    nearest = TrackedNearest(KdTree(target), len(source), margin_m=0.1)
     # an ICP-like sequence: big steps first, then ever smaller ones, with shrinking bounds
     for step, bound in [(0.3, 1.5), (0.1, 1.5), (0.02, 0.6), (0.0, 0.6), (0.005, 0.25), (1e-4, 0.25), (1e-6, 0.25)]:
         R = Rotation.from_rotvec(rng.normal(size=3) * step / 10).as_matrix()
@@ -32,6 +33,21 @@ def test_tracked_nearest_equals_fresh_queries_while_points_move():
     assert nearest.queried < 3 * len(source)  # 7 calls, most points answered from memory
 
 
+def test_kd_tree_queries_equal_scipy_within_a_bound():
+    rng = np.random.default_rng(3)
+    spread = rng.normal(size=(3000, 3)) * [5.0, 5.0, 0.3]
+    queries = rng.uniform(-8, 8, (2000, 3))
+    for target in (spread, np.vstack([spread, np.repeat(spread[:20], 3, axis=0)])):  # then with exact ties
+        ours, scipy_tree = KdTree(target), cKDTree(target)
+        for k, bound in ((1, np.inf), (2, 0.4), (20, 1.0), (5, 0.0)):
+            d, i = ours.query(queries, k=k, distance_upper_bound=bound)
+            d_ref, i_ref = scipy_tree.query(queries, k=k, distance_upper_bound=bound)
+            np.testing.assert_array_equal(d, d_ref.reshape(len(queries), k))
+            if len(target) == len(spread):  # a tie may pick another of the equally distant points
+                np.testing.assert_array_equal(i, i_ref.reshape(len(queries), k))
+        assert (ours.query(queries, k=2, distance_upper_bound=0.4)[1] == len(target)).any()
+
+
 def test_pca_normals_of_exact_planes_and_open3d():
     rng = np.random.default_rng(1)
     u, v = rng.uniform(-2, 2, (2, 3000))
@@ -40,14 +56,13 @@ def test_pca_normals_of_exact_planes_and_open3d():
     a /= np.linalg.norm(a)
     b = np.cross(normal, a)
     plane = u[:, None] * a + v[:, None] * b + 7.0
-    tree = cKDTree(plane)
-    got = LazyNormals(tree, radius_m=1.0, max_nn=20).of(np.arange(0, 3000, 7))
+    got = LazyNormals(KdTree(plane), radius_m=1.0, max_nn=20).of(np.arange(0, 3000, 7))
     np.testing.assert_allclose(np.abs(got @ normal), 1.0, atol=1e-9)
 
     cloud = rng.normal(size=(2000, 3)) * [3.0, 1.0, 0.2]
     o3d_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
     o3d_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.8, max_nn=20))
-    lazy = LazyNormals(cKDTree(cloud), radius_m=0.8, max_nn=20)
+    lazy = LazyNormals(KdTree(cloud), radius_m=0.8, max_nn=20)
     ours = lazy.of(np.r_[np.arange(2000)[::-1], 5, 5])[:2000][::-1]
     cosine = np.abs(np.sum(ours * np.asarray(o3d_cloud.normals), axis=1))
     assert np.quantile(cosine, 0.99) > 1 - 1e-9 and lazy.known.all()
