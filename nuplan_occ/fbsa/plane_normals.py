@@ -99,11 +99,16 @@ class LazyNormals:
         self.normals = np.zeros((tree.n, 3))
         self.known = np.zeros(tree.n, dtype=bool)
 
-    def of(self, indices: np.ndarray) -> np.ndarray:
-        """(len(indices), 3) normals of the points `indices` (int, any order, repeats allowed)."""
+    def ensure(self, indices: np.ndarray) -> None:
+        """Compute the normals of the points `indices` (int, any order, repeats allowed) not known yet;
+        `normals` (m, 3) then holds them."""
         missing = np.unique(indices[~self.known[indices]])
         if len(missing):
             _, neighbours = self.tree.query(self.tree.data[missing], k=self.max_nn, distance_upper_bound=self.radius_m)
             self.normals[missing] = pca_normals(self.tree.data, neighbours.reshape(len(missing), -1).astype(np.int64))
             self.known[missing] = True
+
+    def of(self, indices: np.ndarray) -> np.ndarray:
+        """(len(indices), 3) normals of the points `indices` (int, any order, repeats allowed)."""
+        self.ensure(indices)
         return self.normals[indices]

@@ -3,7 +3,7 @@
 Procedure (all in the "local" frame = the ego frame of logged frame 0, to keep coordinates small):
 1. Frame k's prior is the refined pose of frame k-1 times the LOGGED relative motion k-1 -> k.
 2. Its voxel-downsampled background is registered, coarse to fine, to a local map made of the last
-   `window` trusted sweeps (point-to-plane Gauss-Newton ICP in numpy with a Tukey kernel, kd-tree (fbsa.knn)
+   `window` trusted sweeps (point-to-plane Gauss-Newton ICP with a Tukey kernel, kd-tree (fbsa.knn)
    correspondences re-queried only where they can have changed (fbsa.tracked_nearest), PCA map normals
    computed only for the map points matched (fbsa.plane_normals); deterministic, unlike Open3D's parallel
    ICP). Sweeps and map are downsampled to voxel centroids on grids aligned with their frame's origin
@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals
+from nuplan_occ.fbsa.point_to_plane import normal_equations
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
 from nuplan_occ.fbsa.voxel_reduce import voxel_centroids
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points
@@ -141,8 +142,8 @@ class _LocalMap:
 def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: LazyNormals, nearest: TrackedNearest,
                         init: np.ndarray, max_distance: float, tukey_k: float, max_iterations: int
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton point-to-plane ICP with a Tukey kernel, in numpy (deterministic: Open3D's ICP is not
-    bit-reproducible between runs, and the build must give identical bytes).
+    """Gauss-Newton point-to-plane ICP with a Tukey kernel (normal equations: fbsa.point_to_plane; deterministic:
+    Open3D's ICP is not bit-reproducible between runs, and the build must give identical bytes).
 
     source (n, 3) points in their own frame; target (m, 3) and its normals in the map frame; `nearest` the
     correspondence search over target for these n source points (kept across calls, see TrackedNearest).
@@ -151,15 +152,12 @@ def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: LazyNor
     for _ in range(max_iterations):
         moved = source @ T[:3, :3].T + T[:3, 3]
         match = nearest.query(moved, max_distance)
-        src = np.flatnonzero(match >= 0)
-        if len(src) < 6:
+        matched = match[match >= 0]
+        if len(matched) < 6:
             break
-        p, q, n = moved[src], target[match[src]], normals.of(match[src])
-        residual = np.einsum("ij,ij->i", p - q, n)
-        weight = np.where(np.abs(residual) < tukey_k, (1.0 - (residual / tukey_k) ** 2) ** 2, 0.0)
-        J = np.hstack([np.cross(p, n), n])
-        A = J.T @ (weight[:, None] * J)
-        step = np.linalg.lstsq(A, -J.T @ (weight * residual), rcond=None)[0]
+        normals.ensure(matched)
+        A, b = normal_equations(moved, match, target, normals.normals, tukey_k)
+        step = np.linalg.lstsq(A, -b, rcond=None)[0]
         update = np.eye(4)
         update[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
         update[:3, 3] = step[3:]

@@ -14,11 +14,37 @@ Frames: query and target points in one frame; metres.
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
+
 from nuplan_occ.fbsa.knn import KdTree
 
 TIE_SLACK_M = 1e-9
 """Margin (m) by which a remembered answer must win a comparison to be reused without a query."""
+
+
+@numba.njit(cache=True)
+def _remembered(points: np.ndarray, anchor: np.ndarray, nearest: np.ndarray, clear: np.ndarray, target: np.ndarray,
+                bound: float, slack: float) -> tuple[np.ndarray, np.ndarray]:
+    """(distance (n,) to the remembered nearest point, inf without one; kept (n,): the remembered answer
+    is still exact for points (n, 3), see the module docstring). A NaN anchor (never asked) is not kept."""
+    n = len(points)
+    distance = np.full(n, np.inf)
+    kept = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        delta = math.sqrt((points[i, 0] - anchor[i, 0]) ** 2 + (points[i, 1] - anchor[i, 1]) ** 2
+                          + (points[i, 2] - anchor[i, 2]) ** 2)
+        j = nearest[i]
+        if j >= 0:
+            d = math.sqrt((points[i, 0] - target[j, 0]) ** 2 + (points[i, 1] - target[j, 1]) ** 2
+                          + (points[i, 2] - target[j, 2]) ** 2)
+            distance[i] = d
+            kept[i] = d + delta + slack < clear[i] and abs(d - bound) > slack
+        else:
+            kept[i] = clear[i] - delta >= bound + slack
+    return distance, kept
 
 
 class TrackedNearest:
@@ -39,13 +65,8 @@ class TrackedNearest:
     def query(self, points: np.ndarray, bound: float) -> np.ndarray:
         """(n,) int64 index of the nearest target point within `bound` of each of points (n, 3), -1 where
         there is none (tree.query(points, distance_upper_bound=bound) up to exact ties)."""
-        target = self.tree.data
-        delta = np.linalg.norm(points - self.anchor, axis=1)  # NaN before the first query: asked below
-        has = self.nearest >= 0
-        distance = np.full(len(points), np.inf)
-        distance[has] = np.linalg.norm(points[has] - target[self.nearest[has]], axis=1)
-        kept = has & (distance + delta + TIE_SLACK_M < self.clear) & (np.abs(distance - bound) > TIE_SLACK_M)
-        kept |= ~has & (self.clear - delta >= bound + TIE_SLACK_M)
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        distance, kept = _remembered(points, self.anchor, self.nearest, self.clear, self.tree.data, bound, TIE_SLACK_M)
         ask = np.flatnonzero(~kept)
         if len(ask):
             radius = bound + self.margin_m

@@ -13,6 +13,7 @@ from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.aggregate import voxel_first_indices
 from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals, pca_normals
+from nuplan_occ.fbsa.point_to_plane import normal_equations
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
 from nuplan_occ.fbsa.voxel_reduce import voxel_centroids, voxel_keys
 
@@ -82,3 +83,21 @@ def test_voxel_reductions_against_brute_force():
     assert len(voxel_centroids(np.zeros((0, 3)), 0.5)) == 0 and len(voxel_first_indices(np.zeros((0, 3)), 0.5)) == 0
     with pytest.raises(FbsaInputError, match="beyond"):
         voxel_keys(np.array([[3e5, 0.0, 0.0]]), 0.2)
+
+
+def test_point_to_plane_normal_equations_match_the_dense_formula():
+    rng = np.random.default_rng(6)
+    target = rng.uniform(-10, 10, (500, 3))
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    moved = target[rng.integers(0, 500, 800)] + rng.normal(size=(800, 3)) * 0.1
+    match = np.where(rng.random(800) < 0.8, rng.integers(0, 500, 800), -1)
+    A, b = normal_equations(moved, match, target, normals, 0.15)
+    src = np.flatnonzero(match >= 0)
+    p, q, n = moved[src], target[match[src]], normals[match[src]]
+    r = np.sum((p - q) * n, axis=1)
+    w = np.where(np.abs(r) < 0.15, (1 - (r / 0.15) ** 2) ** 2, 0.0)
+    J = np.hstack([np.cross(p, n), n])
+    assert 0 < np.count_nonzero(w) < len(src)  # some residuals beyond the kernel
+    np.testing.assert_allclose(A, J.T @ (w[:, None] * J), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(b, J.T @ (w * r), rtol=1e-12, atol=1e-12)
