@@ -84,12 +84,13 @@ def _box_distance2(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
 
 
 @numba.njit(cache=True)
-def _search(points: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
+def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
             lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
             ) -> tuple[np.ndarray, np.ndarray]:
     """(distances (Q, k), indices (Q, k)): the k nearest points closer than sqrt(bound2) to each query,
-    ascending; inf and index len(points) where fewer lie that close. Queries are searched in query_order."""
-    n = len(points)
+    ascending; inf and index len(points) where fewer lie that close. ordered = points[order] (leaves are
+    contiguous slices of it); queries are searched in query_order."""
+    n = len(ordered)
     distances = np.full((len(queries), k), np.inf)
     indices = np.full((len(queries), k), n, np.int64)
     best = np.empty(k)
@@ -110,7 +111,7 @@ def _search(points: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.nd
             first = child[node]
             if first < 0:
                 for i in range(start[node], end[node]):
-                    r = points[order[i]]
+                    r = ordered[i]
                     d2 = (p[0] - r[0]) ** 2 + (p[1] - r[1]) ** 2 + (p[2] - r[2]) ** 2
                     if d2 < worst:
                         slot = have if have < k else k - 1
@@ -145,13 +146,14 @@ class KdTree:
         self.data = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         self.n = len(self.data)
         self._nodes = _build(self.data, LEAF_SIZE)
+        self._ordered = self.data[self._nodes[0]]
 
     def query(self, queries: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf
               ) -> tuple[np.ndarray, np.ndarray]:
         """(distances (Q, k), indices (Q, k)): ascending distances to the k nearest points closer than
         distance_upper_bound to each of queries (Q, 3), and their indices; inf and n where fewer are."""
         pts = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
-        return _search(self.data, *self._nodes, pts, np.arange(len(pts)), int(k), float(distance_upper_bound) ** 2)
+        return _search(self._ordered, *self._nodes, pts, np.arange(len(pts)), int(k), float(distance_upper_bound) ** 2)
 
 
 def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
@@ -160,4 +162,4 @@ def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
     tree = KdTree(points)
     if not 1 <= k <= tree.n:
         raise ValueError(f"knn_distances: need 1 <= k <= {tree.n} points, got k = {k}")
-    return _search(tree.data, *tree._nodes, tree.data, tree._nodes[0], k, np.inf)[0]
+    return _search(tree._ordered, *tree._nodes, tree.data, tree._nodes[0], k, np.inf)[0]
