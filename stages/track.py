@@ -126,5 +126,6 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
 
 STAGE = Stage("track", inputs=("scene", "registration"), outputs=("object_boxes", "object_points", "track_corrections"),
               params_type=TrackRefineParams, run=run,
-              code=("nuplan_occ.fbsa.track_refine", "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_snap"),
+              code=("nuplan_occ.fbsa.track_refine", "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_snap",
+                    "nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.voxel_reduce"),
               doc=__doc__ or "")
