@@ -9,8 +9,9 @@ Scene pass `lidar_rays` (params section `visibility`): input `scene`; output `ob
 (RayObservations: every loaded output frame's observed and FREE grids as packed bits, 640 KB each), so a
 frame can use the other frames' free space without holding their grids.
 Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate`, `observations`, frame
-inputs `grids`, `semantics`; frame outputs `masks` ({"mask_lidar", "mask_camera"}), `final_semantics`
-(`semantics` with the cleared voxels empty), `free_cleared` (number of voxels cleared).
+inputs `grids`, `semantics`; prepared once per scene: `camera_segments` (the cameras' rays); frame outputs
+`masks` ({"mask_lidar", "mask_camera"}), `final_semantics` (`semantics` with the cleared voxels empty),
+`free_cleared` (number of voxels cleared).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.free_space import clearable_background, free_in_other_frames, packed_free, point_support
-from nuplan_occ.voxel.visibility import UNKNOWN, camera_visibility, lidar_observation
+from nuplan_occ.voxel.visibility import UNKNOWN, camera_segments, lidar_observation, visible_along
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,13 @@ def run_rays(inputs: dict, params: VisibilityParams) -> dict:
     return {"observations": RayObservations([scene.sweeps[p].token for p in positions], observed, free)}
 
 
+def prepare(inputs: dict, params: VisibilityParams) -> dict:
+    """Once per scene: the rays of the scene's cameras (`camera_segments`; None without camera masks)."""
+    scene = inputs["scene"]
+    use = params.camera and bool(scene.cameras)
+    return {"camera_segments": camera_segments(scene.cameras, DEFAULT_GRID, params.camera_max_range_m) if use else None}
+
+
 def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     scene = inputs["scene"]
     position = frame["position"]
@@ -90,9 +98,8 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
                                      inputs["background_aggregate"], frame["grids"], semantics, params)
             semantics[clear] = 0
             cleared = int(clear.sum())
-    if params.camera and scene.cameras:
-        masks["mask_camera"] = camera_visibility(semantics > 0, scene.cameras, DEFAULT_GRID,
-                                                 max_range_m=params.camera_max_range_m)
+    if inputs["camera_segments"] is not None:
+        masks["mask_camera"] = visible_along(semantics > 0, inputs["camera_segments"], DEFAULT_GRID)
     return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}
 
 
@@ -123,4 +130,4 @@ RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations",), p
 
 STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "observations", "grids", "semantics"),
               outputs=("masks", "final_semantics", "free_cleared"), params_type=VisibilityParams,
-              run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "", per_frame=True)
+              run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "", per_frame=True, prepare=prepare)

@@ -18,6 +18,8 @@ occupied voxel, so the voxels behind an obstacle are never visited.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
@@ -78,23 +80,43 @@ def camera_rays(camera: CameraCalibration, angular_step_rad: float) -> tuple[np.
     return T[:3, 3].copy(), d_cam @ T[:3, :3].T
 
 
+@dataclass(frozen=True)
+class CameraSegments:
+    """The camera rays of a rig as segments (ego frame, m): starts, ends (R, 3), each from its camera's
+    origin to max_range_m along the ray; t_block: the fraction of a segment before which occupied voxels do
+    not occlude (near_m / max_range_m)."""
+
+    starts: np.ndarray
+    ends: np.ndarray
+    t_block: float
+
+
+def camera_segments(cameras: list[CameraCalibration], grid: GridSpec = DEFAULT_GRID, max_range_m: float = 60.0,
+                    angular_step_rad: float | None = None, near_m: float = 0.5) -> CameraSegments:
+    """The rays of all cameras (see module doc; angular step voxel_size / max_range_m by default)."""
+    step = grid.voxel_size / max_range_m if angular_step_rad is None else angular_step_rad
+    starts, ends = [np.zeros((0, 3))], [np.zeros((0, 3))]
+    for camera in cameras:
+        origin, dirs = camera_rays(camera, step)
+        starts.append(np.broadcast_to(origin, dirs.shape))
+        ends.append(starts[-1] + dirs * max_range_m)
+    return CameraSegments(np.concatenate(starts), np.concatenate(ends), near_m / max_range_m)
+
+
+def visible_along(occupied: np.ndarray, segments: CameraSegments, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """bool (X, Y, Z): the voxels of each segment up to and including its first occupied one not before
+    segments.t_block. occupied: bool (X, Y, Z) in the ego frame."""
+    if tuple(occupied.shape) != tuple(grid.shape):
+        raise VisibilityError(f"camera_visibility: occupied has shape {occupied.shape}, grid {grid.shape}")
+    occ = np.asarray(occupied, dtype=bool).ravel()
+    visible = np.zeros(occ.shape, dtype=bool)
+    mark_visible_to_first_hit(segments.starts, segments.ends, *grid_args(grid), occ, segments.t_block, visible)
+    return visible.reshape(grid.shape)
+
+
 def camera_visibility(occupied: np.ndarray, cameras: list[CameraCalibration], grid: GridSpec = DEFAULT_GRID,
                       max_range_m: float = 60.0, angular_step_rad: float | None = None,
                       near_m: float = 0.5) -> np.ndarray:
     """bool (X, Y, Z) mask_camera: voxels some camera sees (see module doc). occupied: bool (X, Y, Z)
     occupancy in the ego frame; cameras: calibrations with T_ego_from_camera."""
-    if tuple(occupied.shape) != tuple(grid.shape):
-        raise VisibilityError(f"camera_visibility: occupied has shape {occupied.shape}, grid {grid.shape}")
-    step = grid.voxel_size / max_range_m if angular_step_rad is None else angular_step_rad
-    occ = np.asarray(occupied, dtype=bool).ravel()
-    visible = np.zeros(occ.shape, dtype=bool)
-    if not cameras:
-        return visible.reshape(grid.shape)
-    starts, ends = [], []
-    for camera in cameras:
-        origin, dirs = camera_rays(camera, step)
-        starts.append(np.broadcast_to(origin, dirs.shape))
-        ends.append(starts[-1] + dirs * max_range_m)
-    mark_visible_to_first_hit(np.concatenate(starts), np.concatenate(ends), *grid_args(grid), occ, near_m / max_range_m,
-                              visible)
-    return visible.reshape(grid.shape)
+    return visible_along(occupied, camera_segments(cameras, grid, max_range_m, angular_step_rad, near_m), grid)
