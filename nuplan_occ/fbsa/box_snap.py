@@ -30,7 +30,8 @@ class BoxSnapParams:
     """max_size_m: boxes whose longer footprint side is at most this are snapped; radius_m: largest shift
     searched; step_m: lattice step of the shifts; min_height_m: points must be this far above the local
     ground (a 0.15 m curb is not an object); ground_quantile: height quantile of the points around the box
-    taken as its ground; min_points: fewer object points than this leave the box where it is."""
+    taken as its ground; min_points: fewer object points than this leave the box where it is; keep_ratio:
+    see step 4 of the module docstring."""
 
     max_size_m: float = 1.0
     radius_m: float = 0.5
@@ -38,6 +39,7 @@ class BoxSnapParams:
     min_height_m: float = 0.2
     ground_quantile: float = 0.3
     min_points: int = 3
+    keep_ratio: float = 0.5
 
 
 def object_points(points_box: np.ndarray, size: np.ndarray, params: BoxSnapParams) -> np.ndarray:
@@ -63,7 +65,8 @@ def snap_shift(points_box: np.ndarray, size: np.ndarray, params: BoxSnapParams =
     shifts = shifts[np.linalg.norm(shifts, axis=1) <= params.radius_m + 1e-9]
     half = np.asarray(size[:2], dtype=np.float64) / 2.0
     inside = np.all(np.abs(xy[None, :, :] - shifts[:, None, :]) <= half, axis=2).sum(axis=1)
-    if inside.max() < params.min_points:
+    at_rest = inside[np.argmin(np.linalg.norm(shifts, axis=1))]
+    if inside.max() < params.min_points or at_rest >= params.keep_ratio * inside.max():
         return np.zeros(2)
     best = shifts[inside == inside.max()]
     return best[np.argmin(np.linalg.norm(best - best.mean(axis=0), axis=1))].copy()
