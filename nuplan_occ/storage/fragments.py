@@ -37,10 +37,11 @@ import time
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
+import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 import fsspec
 
-from nuplan_occ.storage.fsio import atomic_put
+from nuplan_occ.storage.fsio import arrow_filesystem, atomic_put
 from nuplan_occ.storage.manifest import to_parquet_bytes
 
 LEGACY_MANIFEST = "manifest.parquet"
@@ -69,9 +70,21 @@ def _commit_ids_in(fs: fsspec.AbstractFileSystem, folder: str) -> list[str]:
     return sorted(i for i in ids if _COMMIT_ID.match(i))
 
 
+def _newest_commit_under(fs: fsspec.AbstractFileSystem, folder: str) -> list[str]:
+    """The greatest commit id of the fragment files anywhere under `folder` (none if it does not exist)."""
+    try:
+        found = fs.find(folder)
+    except FileNotFoundError:
+        return []
+    ids = [p.rsplit("/", 1)[-1].removesuffix(".parquet") for p in found if p.endswith(".parquet")]
+    return sorted(i for i in ids if _COMMIT_ID.match(i))[-1:]
+
+
 def new_commit_id(fs: fsspec.AbstractFileSystem, root_path: str, folders: list[str]) -> str:
-    """A commit id greater than every commit id in `folders` and the compacted files (see module doc)."""
+    """A commit id greater than every commit id in `folders`, the compacted files and the scene
+    fragments of older datasets (see module doc; `compact` folds the latter away)."""
     seen = [i for folder in [*folders, f"{root_path}/{COMPACTED_DIR}"] for i in _commit_ids_in(fs, folder)[-1:]]
+    seen += _newest_commit_under(fs, f"{root_path}/{SCENES_DIR}")
     floor = max((int(i[:19]) + 1 for i in seen), default=0)
     return f"{max(time.time_ns(), floor):019d}-{secrets.token_hex(8)}"
 
@@ -123,13 +136,12 @@ def manifest_files(fs: fsspec.AbstractFileSystem, root_path: str) -> list[str]:
     then scene fragments (written when the unit was the scene), then shard fragments, each group in name
     order (temp files of interrupted writes are not listed)."""
     legacy = [f"{root_path}/{LEGACY_MANIFEST}"] if fs.exists(f"{root_path}/{LEGACY_MANIFEST}") else []
+    filesystem = arrow_filesystem(fs)
 
     def parquet_under(folder: str) -> list[str]:
-        try:
-            found = fs.find(folder)
-        except FileNotFoundError:
-            return []
-        return sorted(p for p in found if p.endswith(".parquet") and not p.rsplit("/", 1)[-1].startswith("."))
+        found = filesystem.get_file_info(pafs.FileSelector(folder, recursive=True, allow_not_found=True))
+        return sorted(f.path for f in found if f.type == pafs.FileType.File and f.path.endswith(".parquet")
+                      and not f.base_name.startswith("."))
 
     return legacy + [path for folder in (COMPACTED_DIR, SCENES_DIR, SHARDS_DIR)
                      for path in parquet_under(f"{root_path}/{folder}")]
@@ -140,12 +152,15 @@ def commit_ranks(commit_ids: pa.ChunkedArray | pa.Array) -> np.ndarray:
     if isinstance(commit_ids, pa.ChunkedArray):
         commit_ids = commit_ids.combine_chunks()
     encoded = pc.dictionary_encode(commit_ids)
-    rank_of_code = np.empty(len(encoded.dictionary), dtype=np.int64)
-    rank_of_code[pc.sort_indices(encoded.dictionary).to_numpy()] = np.arange(len(encoded.dictionary))
-    codes = encoded.indices.fill_null(-1).to_numpy().astype(np.int64)
-    ranks = np.full(len(codes), -1, dtype=np.int64)
-    ranks[codes >= 0] = rank_of_code[codes[codes >= 0]]
-    return ranks
+    return ranks_of_codes(encoded.indices.fill_null(-1).to_numpy(), encoded.dictionary)
+
+
+def ranks_of_codes(codes: np.ndarray, dictionary: pa.Array) -> np.ndarray:
+    """`commit_ranks` of dictionary-encoded commit ids: codes index `dictionary` (distinct ids), -1 = null."""
+    rank_of_code = np.empty(len(dictionary) + 1, dtype=np.int64)
+    rank_of_code[pc.sort_indices(dictionary).to_numpy()] = np.arange(len(dictionary))
+    rank_of_code[-1] = -1
+    return rank_of_code[codes]
 
 
 def visible_rows(shard_codes: np.ndarray, ranks: np.ndarray, file_of_row: np.ndarray) -> np.ndarray:
@@ -158,6 +173,8 @@ def visible_rows(shard_codes: np.ndarray, ranks: np.ndarray, file_of_row: np.nda
     newest = np.full(n_shards, -2, dtype=np.int64)
     np.maximum.at(newest, shard_codes, ranks)
     keep = ranks == newest[shard_codes]
+    if file_of_row.min() == file_of_row.max():
+        return keep
     first_file = np.full(n_shards, np.iinfo(np.int64).max, dtype=np.int64)
     np.minimum.at(first_file, shard_codes[keep], file_of_row[keep])
     return keep & (file_of_row == first_file[shard_codes])
