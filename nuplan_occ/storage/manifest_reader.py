@@ -12,7 +12,7 @@ between listing and reading makes opening retry with a fresh listing.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
@@ -38,6 +38,8 @@ COMBINE_EVERY = 256
 CODED_COLUMNS = ("shard", "scene_token", COMMIT_COLUMN, "status")
 KEY_COLUMNS = SORT_KEYS[:3]
 _NULL_KEY = np.iinfo(np.int64).max  # a null (unknown) key sorts after every known one, as in `ordered`
+_CODED_TYPE = pa.dictionary(pa.int32(), pa.string())
+_INDEX_SCHEMA = pa.schema([(c, _CODED_TYPE) for c in CODED_COLUMNS] + [(c, pa.int64()) for c in KEY_COLUMNS])
 T = TypeVar("T")
 
 
@@ -48,14 +50,10 @@ def _column_order(schema: pa.Schema) -> pa.Schema:
     return pa.schema([schema.field(n) for n in base + extra])
 
 
-_CODED_TYPE = pa.dictionary(pa.int32(), pa.string())
-_INDEX_SCHEMA = pa.schema([(c, _CODED_TYPE) for c in CODED_COLUMNS] + [(c, pa.int64()) for c in KEY_COLUMNS])
-
-
 @dataclass
 class _FileIndex:
-    """What opening reads of one manifest file: its schema, rows per row group, and its index columns
-    as `_INDEX_SCHEMA` (the string columns dictionary-encoded; a column the file lacks is null)."""
+    """What opening reads of one manifest file: its schema (without metadata), rows per row group, and
+    its index columns as `_INDEX_SCHEMA` (strings dictionary-encoded; a column the file lacks is null)."""
 
     schema: pa.Schema
     row_groups: np.ndarray
@@ -70,6 +68,18 @@ def _each_file(read: Callable[[int, bool], T], n_files: int, fs: fsspec.Abstract
         return
     with ThreadPoolExecutor(min(REMOTE_READ_THREADS, n_files)) as pool:
         yield from pool.map(lambda i: read(i, False), range(n_files))
+
+
+def _concatenated(tables: Iterable[pa.Table]) -> pa.Table:
+    """One table of one or more, combined `COMBINE_EVERY` at a time (thousands of tiny tables held
+    their rows' memory again in per-table overhead)."""
+    combined, pending = [], []
+    for table in tables:
+        pending.append(table)
+        if len(pending) == COMBINE_EVERY:
+            combined.append(pa.concat_tables(pending).combine_chunks())
+            pending = []
+    return pa.concat_tables(combined + pending)
 
 
 def _parquet_errors(path: str, action: Callable[[], T], problem: str = "reading the manifest failed") -> T:
@@ -97,6 +107,7 @@ def _open_file(path: str, filesystem: pafs.FileSystem, use_threads: bool) -> _Fi
 
 
 def _as_index_schema(table: pa.Table) -> pa.Table:
+    """The index columns of one file's table in the types of `_INDEX_SCHEMA`."""
     arrays = []
     for field in _INDEX_SCHEMA:
         if field.name not in table.column_names:
@@ -180,16 +191,17 @@ class ManifestIndex:
     def _scan(self) -> pa.Table:
         """The index columns of every file (`_INDEX_SCHEMA`), in file order; sets the schemas, row
         counts and row groups of the files."""
-        schemas: dict[pa.Schema, int] = {}  # distinct file schemas (without metadata) -> their number
-        schema_of_file, self._group_starts, combined, pending = [], [], [], []
-        for part in _each_file(lambda i, threads: _open_file(self.paths[i], self._filesystem, threads),
-                               len(self.paths), self._fs):
-            schema_of_file.append(schemas.setdefault(part.schema, len(schemas)))
-            self._group_starts.append(np.concatenate([[0], np.cumsum(part.row_groups)]))
-            pending.append(part.columns)
-            if len(pending) == COMBINE_EVERY:  # thousands of tiny tables cost more than their rows
-                combined.append(pa.concat_tables(pending).combine_chunks())
-                pending = []
+        schemas: dict[pa.Schema, int] = {}  # distinct file schemas -> their number
+        schema_of_file, self._group_starts = [], []
+
+        def columns() -> Iterator[pa.Table]:
+            for part in _each_file(lambda i, threads: _open_file(self.paths[i], self._filesystem, threads),
+                                   len(self.paths), self._fs):
+                schema_of_file.append(schemas.setdefault(part.schema, len(schemas)))
+                self._group_starts.append(np.concatenate([[0], np.cumsum(part.row_groups)]))
+                yield part.columns
+
+        index = _concatenated(columns())
         self._schema_of_file = np.array(schema_of_file, dtype=np.int64)
         self.file_row_counts = np.array([int(g[-1]) for g in self._group_starts], dtype=np.int64)
         self._file_start = np.concatenate([[0], np.cumsum(self.file_row_counts)])
@@ -202,12 +214,12 @@ class ManifestIndex:
             schema = schema.append(pa.field(COMMIT_COLUMN, pa.string()))
         self.schema = _column_order(schema)
         self._file_columns = [set(s.names) for s in distinct]
-        return pa.concat_tables(combined + pending)
+        return index
 
     def _read(self, columns: list[str]) -> pa.Table:
         """`columns` of every file, in file order; a column a file lacks reads as null."""
-        return pa.concat_tables(list(_each_file(lambda f, threads: self._file_table(f, columns, threads),
-                                                len(self.paths), self._fs)))
+        return _concatenated(_each_file(lambda f, threads: self._file_table(f, columns, threads), len(self.paths),
+                                        self._fs))
 
     def _file_table(self, f: int, columns: list[str], use_threads: bool, row_group: int | None = None) -> pa.Table:
         """`columns` of file f (or of its row group `row_group`) in the types of `schema`; a column the
