@@ -147,34 +147,28 @@ def manifest_files(fs: fsspec.AbstractFileSystem, root_path: str) -> list[str]:
                      for path in parquet_under(f"{root_path}/{folder}")]
 
 
-def commit_ranks(commit_ids: pa.ChunkedArray | pa.Array) -> np.ndarray:
-    """Rank of every row's commit id in string order (int64; null = -1, older than any commit)."""
-    if isinstance(commit_ids, pa.ChunkedArray):
-        commit_ids = commit_ids.combine_chunks()
-    encoded = pc.dictionary_encode(commit_ids)
-    return ranks_of_codes(encoded.indices.fill_null(-1).to_numpy(), encoded.dictionary)
-
-
 def ranks_of_codes(codes: np.ndarray, dictionary: pa.Array) -> np.ndarray:
-    """`commit_ranks` of dictionary-encoded commit ids: codes index `dictionary` (distinct ids), -1 = null."""
-    rank_of_code = np.empty(len(dictionary) + 1, dtype=np.int64)
-    rank_of_code[pc.sort_indices(dictionary).to_numpy()] = np.arange(len(dictionary))
+    """Rank of every row's commit id in string order (int32; null = -1, older than any commit), from
+    dictionary-encoded ids: `codes` index `dictionary` (the distinct ids), -1 = null."""
+    rank_of_code = np.empty(len(dictionary) + 1, dtype=np.int32)
+    rank_of_code[pc.sort_indices(dictionary).to_numpy()] = np.arange(len(dictionary), dtype=np.int32)
     rank_of_code[-1] = -1
     return rank_of_code[codes]
 
 
-def visible_rows(shard_codes: np.ndarray, ranks: np.ndarray, file_of_row: np.ndarray) -> np.ndarray:
+def visible_rows(shard_codes: np.ndarray, ranks: np.ndarray, file_row_counts: np.ndarray) -> np.ndarray:
     """Bool per row: the row is visible (see module docstring). shard_codes: int codes of the shard
-    column; ranks: `commit_ranks`; file_of_row: index of the file holding the row (files in
-    `manifest_files` order)."""
+    column; ranks: `ranks_of_codes`; file_row_counts: rows of each file, the rows being those of the
+    files in `manifest_files` order."""
     if not len(shard_codes):
         return np.zeros(0, dtype=bool)
     n_shards = int(shard_codes.max()) + 1
-    newest = np.full(n_shards, -2, dtype=np.int64)
+    newest = np.full(n_shards, -2, dtype=ranks.dtype)
     np.maximum.at(newest, shard_codes, ranks)
     keep = ranks == newest[shard_codes]
-    if file_of_row.min() == file_of_row.max():
+    if np.count_nonzero(file_row_counts) <= 1:
         return keep
-    first_file = np.full(n_shards, np.iinfo(np.int64).max, dtype=np.int64)
+    file_of_row = np.repeat(np.arange(len(file_row_counts), dtype=np.int32), file_row_counts)
+    first_file = np.full(n_shards, np.iinfo(np.int32).max, dtype=np.int32)
     np.minimum.at(first_file, shard_codes[keep], file_of_row[keep])
     return keep & (file_of_row == first_file[shard_codes])

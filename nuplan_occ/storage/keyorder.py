@@ -32,12 +32,13 @@ def lex_order(keys: Sequence[np.ndarray]) -> np.ndarray:
     return np.lexsort(list(keys)[::-1]).astype(np.int64)
 
 
-def has_ties(keys: Sequence[np.ndarray], order: np.ndarray) -> bool:
-    """True if two rows adjacent in `order` are equal in every key."""
-    if len(order) < 2:
+def has_ties(keys: Sequence[np.ndarray], order: np.ndarray | None = None) -> bool:
+    """True if two rows adjacent in `order` (None: as they are) are equal in every key."""
+    n = len(keys[0]) if order is None else len(order)
+    if n < 2:
         return False
-    equal = np.ones(len(order) - 1, dtype=bool)
+    equal = np.ones(n - 1, dtype=bool)
     for key in keys:
-        ordered = key[order]
+        ordered = key if order is None else key[order]
         equal &= ordered[1:] == ordered[:-1]
     return bool(equal.any())

@@ -174,14 +174,14 @@ class ManifestIndex:
         kept = [keys[c] if everything else keys[c][keep] for c in KEY_COLUMNS]
         del keys
         order = self._manifest_order(kept, keep)
-        self._in_file_order = everything and bool(np.all(np.diff(order) == 1)) and (not len(order) or order[0] == 0)
-        self.rows = keep if self._in_file_order else keep[order]
+        self._in_file_order = everything and order is None
+        self.rows = keep if order is None else keep[order]
 
         def visible(values: np.ndarray) -> np.ndarray:
             return values if self._in_file_order else values[self.rows]
 
         frame_index = kept[KEY_COLUMNS.index("frame_index")]
-        frame_index = frame_index if self._in_file_order else frame_index[order]
+        frame_index = frame_index if order is None else frame_index[order]
         self.frame_index = np.where(frame_index == _NULL_KEY, -1, frame_index)
         self.scene_codes = _scene_codes(visible(codes["scene_token"][0]))
         status, status_values = codes["status"]
@@ -249,10 +249,10 @@ class ManifestIndex:
         self._footers[f] = meta
         return meta
 
-    def _manifest_order(self, keys: list[np.ndarray], keep: np.ndarray) -> np.ndarray:
-        """Order of the kept rows (their `keys`) by SORT_KEYS (token breaks ties only where the
-        integer keys tie)."""
-        order = keyorder.lex_order(keys)
+    def _manifest_order(self, keys: list[np.ndarray], keep: np.ndarray) -> np.ndarray | None:
+        """Order of the kept rows (their `keys`) by SORT_KEYS, None if they are in order already (token
+        breaks ties only where the integer keys tie)."""
+        order = None if keyorder.in_order(keys) else keyorder.lex_order(keys)
         if keyorder.has_ties(keys, order):
             tokens = self._read(["token"])["token"].take(pa.array(keep))
             table = pa.table({**{n: keys[i] for i, n in enumerate(KEY_COLUMNS)}, "token": tokens})
@@ -320,8 +320,7 @@ def _visible(shards: tuple[np.ndarray, pa.Array], commits: tuple[np.ndarray, pa.
     shard_codes, shard_values = shards
     if len(shard_codes) and shard_codes.min() < 0:  # rows without a shard: one shard of their own
         shard_codes = np.where(shard_codes >= 0, shard_codes, len(shard_values))
-    file_of_row = np.repeat(np.arange(len(file_row_counts)), file_row_counts)
-    return np.flatnonzero(visible_rows(shard_codes, ranks_of_codes(*commits), file_of_row))
+    return np.flatnonzero(visible_rows(shard_codes, ranks_of_codes(*commits), file_row_counts))
 
 
 def _scene_codes(codes: np.ndarray) -> np.ndarray:
