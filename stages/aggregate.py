@@ -105,4 +105,5 @@ def run(inputs: dict, params: AggregateParams) -> dict:
 STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "object_boxes", "object_points"),
               outputs=("background_aggregate", "objects", "object_through_rays"), params_type=AggregateParams,
               run=run,
-              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split"), doc=__doc__ or "")
+              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic",
+                    "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.voxel_reduce"), doc=__doc__ or "")

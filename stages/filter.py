@@ -42,4 +42,4 @@ def run(inputs: dict, params: FilterParams) -> dict:
 
 
 STAGE = Stage("filter", inputs=("scene", "splits"), outputs=("background", "outliers_removed"),
-              params_type=FilterParams, run=run, code=("nuplan_occ.fbsa.outliers",), doc=__doc__ or "")
+              params_type=FilterParams, run=run, code=("nuplan_occ.fbsa.outliers", "nuplan_occ.fbsa.knn"), doc=__doc__ or "")

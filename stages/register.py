@@ -21,4 +21,7 @@ def run(inputs: dict, params: RegistrationParams) -> dict:
 
 
 STAGE = Stage("register", inputs=("scene", "background"), outputs=("registration",),
-              params_type=RegistrationParams, run=run, code=("nuplan_occ.fbsa.register",), doc=__doc__ or "")
+              params_type=RegistrationParams, run=run,
+              code=("nuplan_occ.fbsa.register", "nuplan_occ.fbsa.knn", "nuplan_occ.fbsa.tracked_nearest",
+                    "nuplan_occ.fbsa.plane_normals", "nuplan_occ.fbsa.point_to_plane", "nuplan_occ.fbsa.voxel_reduce"),
+              doc=__doc__ or "")

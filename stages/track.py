@@ -6,8 +6,10 @@ frames (nuplan_occ.fbsa.track_refine: 4-DoF point-to-plane ICP, model rebuilt `r
 removes the box noise and the ego-pose error from the boxes at once, since the points are exact in their
 sweep's ego frame. The corrected boxes are then smoothed over time in the global frame (a static
 track gets one pose, a moving one a local quadratic fit), which also places the boxes of frames with
-too few points for ICP (cones, pedestrians) better than one noisy box can. Then each frame's points are taken again from the whole sweep, inside the corrected
-box, so points a misplaced box had cut off come back.
+too few points for ICP (cones, pedestrians) better than one noisy box can. A small static object's box
+is then moved onto its own points (fbsa.box_snap): an offset shared by all its frames (the ego-pose
+error) is invisible to the ICP, and would leave a cone's box empty. Then each frame's points are taken
+again from the whole sweep, inside the corrected box, so points a misplaced box had cut off come back.
 
 Inputs: `scene`, `registration`. Outputs: `object_boxes` (sweep position -> Boxes in that sweep's ego
 frame, corrected where the track had enough points there), `object_points` (sweep position -> track ->
@@ -21,9 +23,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from nuplan_occ.fbsa.box_snap import BoxSnapParams, snap_shift
 from nuplan_occ.fbsa.split import foreground_by_track, points_in_boxes
 from nuplan_occ.fbsa.track_refine import TrackRefineParams, corrected_box, refine_track, smooth_track_poses
-from nuplan_occ.geometry import invert_transform, transform_points, wrap_angle, yaw_of
+from nuplan_occ.geometry import invert_transform, transform_points, wrap_angle, yaw_matrix, yaw_of
 from nuplan_occ.io.types import Boxes
 from nuplan_occ.pipeline.stage import Stage
 
@@ -40,9 +43,10 @@ def points_per_box(cloud_ego: np.ndarray, boxes: Boxes, origin_ego: np.ndarray) 
 
 
 def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], track: str, positions: list[int],
-                          corrections: np.ndarray, n_points: list[int], params: TrackRefineParams) -> np.ndarray:
-    """(F, 4) global poses (x, y, z, yaw) of one track's boxes at its sweeps `positions`: each box
-    corrected by its ICP correction, moved to the global frame with the refined pose, then smoothed
+                          corrections: np.ndarray, n_points: list[int], params: TrackRefineParams
+                          ) -> tuple[np.ndarray, bool]:
+    """((F, 4) global poses (x, y, z, yaw), static) of one track's boxes at its sweeps `positions`: each
+    box corrected by its ICP correction, moved to the global frame with the refined pose, then smoothed
     (static tracks: one pose; see track_refine.smooth_track_poses)."""
     corrected, stored, speeds, weights = [], [], [], []
     for i, c, n in zip(positions, corrections, n_points):
@@ -58,7 +62,25 @@ def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], t
     travel = float(np.max(np.linalg.norm(stored[:, :2] - stored[:1, :2], axis=1))) if len(stored) else 0.0
     static = float(np.median(speeds)) < params.static_speed_mps and travel < params.static_travel_m
     times = np.array([scene.sweeps[i].timestamp_us for i in positions], dtype=np.float64) / 1e6
-    return smooth_track_poses(times, np.array(corrected), np.array(weights), static, params.smooth_window_s)
+    return smooth_track_poses(times, np.array(corrected), np.array(weights), static, params.smooth_window_s), static
+
+
+def snapped_static_pose(scene, poses: np.ndarray, positions: list[int], pose: np.ndarray, size: np.ndarray,
+                        params: BoxSnapParams) -> np.ndarray:
+    """(4,) global pose (x, y, z, yaw) of a static track's box moved in x, y onto the points near it in
+    its sweeps `positions` (fbsa.box_snap; points taken to the global frame with the refined poses)."""
+    R = yaw_matrix(float(pose[3]))
+    reach = params.radius_m + float(np.max(size[:2]))  # a square around the box, wider than needed
+    gathered = []
+    for i in positions:
+        xyz = scene.sweeps[i].cloud.xyz
+        center_ego = transform_points(invert_transform(poses[i]), pose[None, :3])[0]
+        near = np.max(np.abs(xyz[:, :2] - center_ego[:2]), axis=1) <= reach
+        gathered.append((transform_points(poses[i], xyz[near]) - pose[:3]) @ R)
+    shift = snap_shift(np.vstack(gathered), size, params)
+    snapped = np.array(pose, dtype=np.float64)
+    snapped[:2] += R[:2, :2] @ shift
+    return snapped
 
 
 def run(inputs: dict, params: TrackRefineParams) -> dict:
@@ -76,9 +98,17 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
     for track, positions in frames_of.items():
         views = [first_points[i].get(track, (np.zeros((0, 3)), None))[0] for i in positions]
         corrections[track] = refine_track(views, params)
-    final = {track: smoothed_global_poses(scene, poses, initial, track, positions, corrections[track],
-                                          [len(first_points[i].get(track, ((),))[0]) for i in positions], params)
-             for track, positions in frames_of.items()}
+    snap = BoxSnapParams(max_size_m=params.snap_max_size_m, radius_m=params.snap_radius_m,
+                         min_height_m=params.snap_min_height_m)
+    final = {}
+    for track, positions in frames_of.items():
+        final[track], static = smoothed_global_poses(scene, poses, initial, track, positions, corrections[track],
+                                                     [len(first_points[i].get(track, ((),))[0]) for i in positions],
+                                                     params)
+        first = initial[positions[0]]
+        size = first.sizes[first.track_tokens.index(track)]
+        if static and params.snap_radius_m > 0 and float(np.max(size[:2])) <= params.snap_max_size_m:
+            final[track][:] = snapped_static_pose(scene, poses, positions, final[track][0], size, snap)
     object_boxes, object_points = {}, {}
     for i in ok:
         boxes = initial[i]
@@ -95,5 +125,7 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
 
 
 STAGE = Stage("track", inputs=("scene", "registration"), outputs=("object_boxes", "object_points", "track_corrections"),
-              params_type=TrackRefineParams, run=run, code=("nuplan_occ.fbsa.track_refine", "nuplan_occ.fbsa.split"),
+              params_type=TrackRefineParams, run=run,
+              code=("nuplan_occ.fbsa.track_refine", "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_snap",
+                    "nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.voxel_reduce"),
               doc=__doc__ or "")

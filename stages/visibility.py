@@ -5,9 +5,9 @@ voxel, are cleared (nuplan_occ.voxel.free_space); then `mask_camera` from the 8 
 occlusion by the frame's (cleared) occupancy.
 
 Rays start at the merged LiDAR frame's origin (the only sensor pose nuPlan stores).
-Scene pass `lidar_rays` (params section `visibility`): input `scene`; output `observations` (sweep token
-of every loaded output frame -> (packed observed, packed FREE): np.packbits of the flat grids, 640 KB each),
-so a frame can use the other frames' free space without holding their grids.
+Scene pass `lidar_rays` (params section `visibility`): input `scene`; output `observations`
+(RayObservations: every loaded output frame's observed and FREE grids as packed bits, 640 KB each), so a
+frame can use the other frames' free space without holding their grids.
 Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate`, `observations`, frame
 inputs `grids`, `semantics`; frame outputs `masks` ({"mask_lidar", "mask_camera"}), `final_semantics`
 (`semantics` with the cleared voxels empty), `free_cleared` (number of voxels cleared).
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.free_space import clearable_background, free_in_other_frames, packed_free, point_support
@@ -45,16 +45,34 @@ class VisibilityParams:
     free_space_other_frames: bool = True
 
 
+@dataclass
+class RayObservations:
+    """The LiDAR observation grids (`lidar_observation`) of a scene's loaded output frames, one row per
+    frame: tokens (sweep tokens, scene order); observed, free: uint8 (F, n_bytes) np.packbits of the flat
+    observed (not UNKNOWN) and FREE grids (`packed_free`)."""
+
+    tokens: list[str]
+    observed: np.ndarray
+    free: np.ndarray
+
+    def row(self, token: str) -> int:
+        """The row of the frame with sweep token `token` (KeyError when it has none)."""
+        if token not in self.tokens:
+            raise KeyError(f"no LiDAR observation for sweep {token}")
+        return self.tokens.index(token)
+
+
 def run_rays(inputs: dict, params: VisibilityParams) -> dict:
     scene = inputs["scene"]
-    observations = {}
-    if params.lidar:
-        for position in scene.output_positions():
-            sweep = scene.sweeps[position]
-            if sweep.cloud is not None:
-                observation = lidar_observation(sweep.cloud.xyz, scene.sensor_origin_ego, DEFAULT_GRID)
-                observations[sweep.token] = (np.packbits((observation != UNKNOWN).reshape(-1)), packed_free(observation))
-    return {"observations": observations}
+    positions = [p for p in scene.output_positions() if scene.sweeps[p].cloud is not None] if params.lidar else []
+    n_bytes = (int(np.prod(DEFAULT_GRID.shape)) + 7) // 8
+    observed = np.empty((len(positions), n_bytes), dtype=np.uint8)
+    free = np.empty((len(positions), n_bytes), dtype=np.uint8)
+    for row, position in enumerate(positions):
+        observation = lidar_observation(scene.sweeps[position].cloud.xyz, scene.sensor_origin_ego, DEFAULT_GRID)
+        observed[row] = np.packbits((observation != UNKNOWN).reshape(-1))
+        free[row] = packed_free(observation)
+    return {"observations": RayObservations([scene.sweeps[p].token for p in positions], observed, free)}
 
 
 def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
@@ -64,10 +82,11 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     semantics = frame["semantics"].copy()
     masks, cleared = {}, 0
     if params.lidar:
-        observed = np.unpackbits(inputs["observations"][token][0], count=int(np.prod(DEFAULT_GRID.shape)))
+        observations = inputs["observations"]
+        observed = np.unpackbits(observations.observed[observations.row(token)], count=int(np.prod(DEFAULT_GRID.shape)))
         masks["mask_lidar"] = observed.reshape(DEFAULT_GRID.shape).astype(bool)
         if params.clear_free_space:
-            clear = free_space_clear(position, token, scene, inputs["observations"], inputs["registration"].poses,
+            clear = free_space_clear(position, token, scene, observations, inputs["registration"].poses,
                                      inputs["background_aggregate"], frame["grids"], semantics, params)
             semantics[clear] = 0
             cleared = int(clear.sum())
@@ -77,21 +96,23 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}
 
 
-def free_space_clear(position: int, token: str, scene, observations: dict, poses: np.ndarray, background,
+def free_space_clear(position: int, token: str, scene, observations: RayObservations, poses: np.ndarray, background,
                      grids, semantics: np.ndarray, params: VisibilityParams) -> np.ndarray:
     """bool grid of the frame's background voxels to clear (nuplan_occ.voxel.free_space): crossed by its own
-    rays or, with free_space_other_frames, by another output frame's (observations: token -> (packed
-    observed, packed FREE))."""
-    T_ego_from_global = invert_transform(poses[position])
-    support = point_support(transform_points(T_ego_from_global @ background.T_global_from_scene, background.points))
+    rays or, with free_space_other_frames, by another output frame's."""
+    support = point_support(background.points, DEFAULT_GRID, invert_transform(poses[position]) @ background.T_global_from_scene)
     candidates = clearable_background(grids.occupied_background & (semantics > 0), support, grids.ground_height,
                                       DEFAULT_GRID, params.free_space_ground_margin_m)
-    position_of = {sweep.token: i for i, sweep in enumerate(scene.sweeps)}
-    others = [t for t in observations if t != token] if params.free_space_other_frames else []
+    own = observations.row(token)
+    if params.free_space_other_frames:
+        position_of = {sweep.token: i for i, sweep in enumerate(scene.sweeps)}
+        bits = observations.free
+        transforms = np.stack([np.eye(4) if row == own else invert_transform(poses[position_of[other]]) @ poses[position]
+                               for row, other in enumerate(observations.tokens)])
+    else:
+        bits, transforms = observations.free[own:own + 1], np.eye(4)[None]
     rest = np.argwhere(candidates)
-    free = free_in_other_frames(DEFAULT_GRID.index_to_center(rest),
-                                [np.eye(4)] + [invert_transform(poses[position_of[t]]) @ poses[position] for t in others],
-                                [observations[token][1]] + [observations[t][1] for t in others])
+    free = free_in_other_frames(DEFAULT_GRID.index_to_center(rest), transforms, bits)
     clear = np.zeros(DEFAULT_GRID.shape, dtype=bool)
     clear[tuple(rest[free].T)] = True
     return clear

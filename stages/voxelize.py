@@ -6,8 +6,9 @@ exceed a voxel); solid objects are filled inside their surface. Gives instance i
 and per-voxel flow. Objects are placed by their corrected boxes (track stage).
 
 Inputs: `scene`, `registration`, `object_boxes`, `background_aggregate`, `background_surface`, `objects`,
-`object_surfaces`, `object_solids`. Frame output: `grids` (the frame's FrameGrids; background labeled
-OTHER here), or `failure` for a sweep that did not load.
+`object_surfaces`, `object_solids`; prepared once per scene: `background_tiles` (the background surface
+indexed on x-y tiles, so a frame's crop touches only the surface near it). Frame output: `grids` (the
+frame's FrameGrids; background labeled OTHER here), or `failure` for a sweep that did not load.
 """
 
 from __future__ import annotations
@@ -16,12 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.io.types import Boxes
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.compose import PlacedObject, compose_frame
+from nuplan_occ.voxel.surface_tiles import build_surface_tiles
 
 
 @dataclass(frozen=True)
@@ -45,17 +47,6 @@ class VoxelizeParams:
     ground_layer_categories: tuple[str, ...] = ("vehicle",)
     solid_min_cells: int = 4
     sparse_solid_categories: tuple[str, ...] = ("vehicle",)
-
-
-def crop_mesh_to_grid(vertices_ego: np.ndarray, faces: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Keep the triangles (or, with no faces, the points) with a vertex near the grid (ego frame)."""
-    lower, upper = DEFAULT_GRID.lower - margin_m, DEFAULT_GRID.upper + margin_m
-    near = np.all((vertices_ego >= lower) & (vertices_ego < upper), axis=1)
-    if len(faces) == 0:
-        return vertices_ego[near], faces
-    kept = faces[near[faces].any(axis=1)]
-    used, remapped = np.unique(kept, return_inverse=True)
-    return vertices_ego[used], remapped.reshape(-1, 3)
 
 
 def box_lattice_points(size: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -96,6 +87,12 @@ def placed_objects(scene, boxes: Boxes, ok_position: int, objects: dict, surface
     return placed
 
 
+def prepare(inputs: dict, params: VoxelizeParams) -> dict:
+    """Once per scene: the background surface indexed on x-y tiles of the scene frame (`background_tiles`)."""
+    surface = inputs["background_surface"]
+    return {"background_tiles": build_surface_tiles(surface.vertices, surface.faces)}
+
+
 def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
     scene = inputs["scene"]
     position = frame["position"]
@@ -104,10 +101,9 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
         return {"failure": sweep.failure or "frame was not built"}
     ok_position = scene.ok_indices().index(position)
     T_ego_from_global = invert_transform(inputs["registration"].poses[position])
-    surface = inputs["background_surface"]
-    vertices, faces = crop_mesh_to_grid(
-        transform_points(T_ego_from_global @ inputs["background_aggregate"].T_global_from_scene, surface.vertices),
-        surface.faces, params.crop_margin_m)
+    T_ego_from_scene = T_ego_from_global @ inputs["background_aggregate"].T_global_from_scene
+    vertices, faces = inputs["background_tiles"].crop(T_ego_from_scene, DEFAULT_GRID.lower - params.crop_margin_m,
+                                                      DEFAULT_GRID.upper + params.crop_margin_m)
     objects = placed_objects(scene, inputs["object_boxes"][position], ok_position, inputs["objects"],
                              inputs["object_surfaces"], inputs["object_solids"], params.pedestrian_window,
                              params.box_fill_categories, params.box_fill_spacing_m,
@@ -122,4 +118,4 @@ STAGE = Stage("voxelize",
               inputs=("scene", "registration", "object_boxes", "background_aggregate", "background_surface", "objects",
                       "object_surfaces", "object_solids"),
               outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "",
-              per_frame=True)
+              per_frame=True, prepare=prepare)

@@ -4,10 +4,10 @@ pose, filter columns, QA figures, status), which the runner encodes into the sce
 failed, or whose earlier frame stage failed, gets a record with status "failed" and the reason.
 
 Inputs: `scene`, `registration`, `outliers_removed`, `map_status`, `map_alignment`, `object_boxes`,
-`object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`); frame inputs `grids`, `final_semantics`,
-`masks`, `free_cleared`. Frame output: `record` (FrameRecord). A row's `ego_to_global` is the refined pose
-corrected by the scene's map alignment: the pose the frame's labels were rasterized with, so the map drawn
-with it lands where the grid says.
+`object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`); prepared once per scene: `ego_speeds`;
+frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`. Frame output: `record` (FrameRecord). A
+row's `ego_to_global` is the refined pose corrected by the scene's map alignment: the pose the frame's labels
+were rasterized with, so the map drawn with it lands where the grid says.
 """
 
 from __future__ import annotations
@@ -57,6 +57,12 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
     return columns
 
 
+def prepare(inputs: dict, params: WriteParams) -> dict:
+    """Once per scene: `ego_speeds` (F,) m/s of every sweep from its refined pose (`ego_speeds`)."""
+    scene = inputs["scene"]
+    return {"ego_speeds": ego_speeds(inputs["registration"].poses, np.array([s.timestamp_us for s in scene.sweeps]))}
+
+
 def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     scene = inputs["scene"]
     task = scene.task
@@ -65,8 +71,7 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     position = frame["position"]
     sweep = scene.sweeps[position]
     pose = registration.poses[position] if alignment is None else alignment.correction @ registration.poses[position]
-    speeds = ego_speeds(registration.poses, np.array([s.timestamp_us for s in scene.sweeps]))
-    columns = frame_columns(scene, position, registration, speeds, inputs["outliers_removed"][position],
+    columns = frame_columns(scene, position, registration, inputs["ego_speeds"], inputs["outliers_removed"][position],
                             inputs["map_status"], alignment)
     record = FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
                          scene_name=task.scene_name, frame_index=sweep.index, token=sweep.token,
@@ -90,4 +95,5 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
 STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "map_status", "map_alignment",
                                 "object_boxes", "object_points", "grids", "final_semantics", "masks", "free_cleared"),
               outputs=("record",), params_type=WriteParams, run=run,
-              code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "", per_frame=True)
+              code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "", per_frame=True,
+              prepare=prepare)

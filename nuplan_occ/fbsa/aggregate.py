@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.voxel_reduce import first_of_each_key, voxel_keys
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.io.types import Boxes
 
@@ -32,9 +33,7 @@ class BackgroundAggregate:
 
 def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """Sorted indices of the first point (in input order) of every occupied voxel of size voxel_m (m)."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return np.sort(first)
+    return first_of_each_key(voxel_keys(points, voxel_m))
 
 
 def within_boxes(points: np.ndarray, T_box_from_points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -101,7 +100,7 @@ def aggregate_background(
                 cloud = cloud[within_boxes(cloud, crop_from_global @ poses[i], crop[1], crop[2])]
             pts = transform_points(T, cloud)
             points.append(pts)
-            sensors.append(np.repeat(transform_points(T, origins[i][None]), len(pts), axis=0))
+            sensors.append(np.broadcast_to(transform_points(T, origins[i][None]), pts.shape))
             ids.append(np.full(len(pts), i, dtype=np.int32))
         agg = BackgroundAggregate(np.vstack(points), np.vstack(sensors), np.concatenate(ids), T_gs)
         if voxel_downsample_m:  # first point per voxel so far: the same points as downsampling all at once

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.box_cull import segments_near_box
 
 
 @dataclass(frozen=True)
@@ -61,14 +62,22 @@ def segments_through_box(starts: np.ndarray, ends: np.ndarray, center: np.ndarra
                          size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The segments start -> end (N, 3) (e.g. sensor origin -> background return, ego frame) that cross an
     upright box (center (3,), yaw rad, size (3,) [length, width, height] in the same frame), moved into the
-    box frame: (starts_box (K, 3), ends_box (K, 3))."""
+    box frame: (starts_box (K, 3), ends_box (K, 3)), in input order. A compiled test picks the segments near
+    the box (box_cull), the exact slab test of `clip_segments_to_box` decides among them."""
+    starts, ends = np.asarray(starts, np.float64), np.asarray(ends, np.float64)
+    center, half = np.asarray(center, np.float64), np.asarray(size, np.float64) / 2.0
+    near = np.flatnonzero(segments_near_box(starts, ends, center, float(yaw), half, CULL_GROW_M))
     c, s = np.cos(yaw), np.sin(yaw)
     R_box_from_frame = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    starts_box = (np.asarray(starts, np.float64) - center) @ R_box_from_frame.T
-    ends_box = (np.asarray(ends, np.float64) - center) @ R_box_from_frame.T
-    t0, t1 = clip_segments_to_box(starts_box, ends_box, np.asarray(size, np.float64) / 2.0)
+    starts_box = (starts[near] - center) @ R_box_from_frame.T
+    ends_box = (ends[near] - center) @ R_box_from_frame.T
+    t0, t1 = clip_segments_to_box(starts_box, ends_box, half)
     crossing = t0 < t1
     return starts_box[crossing], ends_box[crossing]
+
+
+CULL_GROW_M = 1e-6
+"""segments_through_box decides exactly only the segments crossing the box grown by this (box_cull)."""
 
 
 def carve_object_solid(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float = 0.1,

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.voxel_reduce import voxel_keys
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.voxel.visibility import FREE, OCCUPIED, lidar_observation
@@ -26,8 +27,8 @@ from nuplan_occ.voxel.visibility import FREE, OCCUPIED, lidar_observation
 
 def height_above_ground(points_scene: np.ndarray, cell_m: float) -> np.ndarray:
     """(M,) height (m) of each point (M, 3) scene frame above the lowest point of its cell_m xy cell."""
-    keys = np.floor(points_scene[:, :2] / cell_m).astype(np.int64)
-    _, cell = np.unique(keys, axis=0, return_inverse=True)
+    columns = np.c_[points_scene[:, :2], np.zeros(len(points_scene))]  # z = 0: one packed key per xy cell
+    _, cell = np.unique(voxel_keys(columns, cell_m), return_inverse=True)
     cell = cell.reshape(-1)
     lowest = np.full(int(cell.max()) + 1 if len(cell) else 0, np.inf)
     np.minimum.at(lowest, cell, points_scene[:, 2])

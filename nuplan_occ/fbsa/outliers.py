@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial import cKDTree
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.knn import knn_distances
 
 OUTLIER_METHODS = ("global", "knn", "range")
 MIN_RANGE_M = 1.0
@@ -44,8 +44,7 @@ def _knn_mask(points: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.nda
 
 def _range_mask(points: np.ndarray, origin: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:
     k = min(nb_neighbors, len(points))
-    dist, _ = cKDTree(points).query(points, k=k)
-    mean_dist = dist.reshape(len(points), k).mean(axis=1)  # itself included at distance 0, as in Open3D
+    mean_dist = knn_distances(points, k).mean(axis=1)  # itself included at distance 0, as in Open3D
     score = mean_dist / np.maximum(np.linalg.norm(points - origin, axis=1), MIN_RANGE_M)
     spread = score[score > 0]  # exact duplicates do not enter the statistics (and are kept, unlike Open3D)
     if len(spread) < 2:

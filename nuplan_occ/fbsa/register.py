@@ -3,9 +3,12 @@
 Procedure (all in the "local" frame = the ego frame of logged frame 0, to keep coordinates small):
 1. Frame k's prior is the refined pose of frame k-1 times the LOGGED relative motion k-1 -> k.
 2. Its voxel-downsampled background is registered, coarse to fine, to a local map made of the last
-   `window` trusted sweeps (point-to-plane Gauss-Newton ICP in numpy with a Tukey kernel, scipy kd-tree
-   correspondences, Open3D map normals; deterministic, unlike Open3D's parallel ICP). This
-   refines all six degrees of freedom, z, roll and pitch included, so that the ground does not layer.
+   `window` trusted sweeps (point-to-plane Gauss-Newton ICP with a Tukey kernel, kd-tree (fbsa.knn)
+   correspondences re-queried only where they can have changed (fbsa.tracked_nearest), PCA map normals
+   computed only for the map points matched (fbsa.plane_normals); deterministic, unlike Open3D's parallel
+   ICP). Sweeps and map are downsampled to voxel centroids on grids aligned with their frame's origin
+   (fbsa.voxel_reduce). This refines all six degrees of freedom, z, roll and pitch included, so that the
+   ground does not layer.
 3. The result is gated: too few points, empty map, low fitness, high RMSE, degenerate geometry (a direction
    without point-to-plane constraint, e.g. a featureless plane) or an implausibly large correction with respect
    to the prior rejects it; the frame then keeps its prior (the logged pose chain) and stays out of the map.
@@ -23,16 +26,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy.optimize import least_squares
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.knn import KdTree
+from nuplan_occ.fbsa.plane_normals import LazyNormals
+from nuplan_occ.fbsa.point_to_plane import normal_equations
+from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
+from nuplan_occ.fbsa.voxel_reduce import voxel_centroids
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points
 
 
 ANCHORS = ("fit", "first")
+NEAREST_MARGIN_M = 0.1
+"""Search radius beyond the correspondence distance of each kd-tree query (TrackedNearest margin_m)."""
 
 
 @dataclass
@@ -85,10 +93,6 @@ class RegistrationResult:
     reasons: list[str]
 
 
-def _cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64)))
-
-
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle (degrees) of a 3x3 rotation."""
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
@@ -109,6 +113,15 @@ def plane_conditioning(points: np.ndarray, normals: np.ndarray, center: np.ndarr
     return float(max(eig[0], 0.0) / eig[-1]) if eig[-1] > 0 else 0.0
 
 
+@dataclass
+class _Target:
+    """The local map as ICP target: points (m, 3) local frame, their kd-tree and their normals."""
+
+    points: np.ndarray
+    tree: KdTree
+    normals: LazyNormals
+
+
 class _LocalMap:
     """The last `window` trusted sweeps (local frame) and the normal-carrying cloud built from them."""
 
@@ -119,33 +132,32 @@ class _LocalMap:
     def add(self, points_local: np.ndarray) -> None:
         self.sweeps = (self.sweeps + [points_local])[-self.params.window:]
 
-    def target(self) -> o3d.geometry.PointCloud:
+    def target(self) -> _Target:
         p = self.params
-        cloud = _cloud(np.vstack(self.sweeps)).voxel_down_sample(p.map_voxel_m)
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=p.normal_radius_m, max_nn=p.normal_max_nn))
-        return cloud
+        points = voxel_centroids(np.vstack(self.sweeps), p.map_voxel_m)
+        tree = KdTree(points)
+        return _Target(points, tree, LazyNormals(tree, p.normal_radius_m, p.normal_max_nn))
 
 
-def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: np.ndarray, tree: cKDTree, init: np.ndarray,
-                        max_distance: float, tukey_k: float, max_iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton point-to-plane ICP with a Tukey kernel, in numpy (deterministic: Open3D's ICP is not
-    bit-reproducible between runs, and the build must give identical bytes).
+def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: LazyNormals, nearest: TrackedNearest,
+                        init: np.ndarray, max_distance: float, tukey_k: float, max_iterations: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton point-to-plane ICP with a Tukey kernel (normal equations: fbsa.point_to_plane; deterministic:
+    Open3D's ICP is not bit-reproducible between runs, and the build must give identical bytes).
 
-    source (n, 3) points in their own frame; target (m, 3) / normals (m, 3) in the map frame, `tree` over
-    target. Returns (T_map_from_source, source indices, target indices) of the last correspondences."""
+    source (n, 3) points in their own frame; target (m, 3) and its normals in the map frame; `nearest` the
+    correspondence search over target for these n source points (kept across calls, see TrackedNearest).
+    Returns (T_map_from_source, source indices, target indices) of the last correspondences."""
     T = init.copy()
     for _ in range(max_iterations):
         moved = source @ T[:3, :3].T + T[:3, 3]
-        distance, nearest = tree.query(moved, distance_upper_bound=max_distance)
-        src = np.flatnonzero(np.isfinite(distance))
-        if len(src) < 6:
+        match = nearest.query(moved, max_distance)
+        matched = match[match >= 0]
+        if len(matched) < 6:
             break
-        p, q, n = moved[src], target[nearest[src]], normals[nearest[src]]
-        residual = np.einsum("ij,ij->i", p - q, n)
-        weight = np.where(np.abs(residual) < tukey_k, (1.0 - (residual / tukey_k) ** 2) ** 2, 0.0)
-        J = np.hstack([np.cross(p, n), n])
-        A = J.T @ (weight[:, None] * J)
-        step = np.linalg.lstsq(A, -J.T @ (weight * residual), rcond=None)[0]
+        normals.ensure(matched)
+        A, b = normal_equations(moved, match, target, normals.normals, tukey_k)
+        step = np.linalg.lstsq(A, -b, rcond=None)[0]
         update = np.eye(4)
         update[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
         update[:3, 3] = step[3:]
@@ -153,27 +165,28 @@ def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: np.ndar
         if np.linalg.norm(step) < 1e-7:
             break
     moved = source @ T[:3, :3].T + T[:3, 3]
-    distance, nearest = tree.query(moved, distance_upper_bound=max_distance)
-    src = np.flatnonzero(np.isfinite(distance))
-    return T, src, nearest[src]
+    match = nearest.query(moved, max_distance)
+    src = np.flatnonzero(match >= 0)
+    return T, src, match[src]
 
 
-def _register(source: np.ndarray, target: o3d.geometry.PointCloud, init: np.ndarray,
+def _register(source: np.ndarray, target: _Target, init: np.ndarray,
               params: RegistrationParams) -> tuple[np.ndarray, float, float, float]:
     """Coarse-to-fine point-to-plane ICP of source points (n, 3, ego frame) against the local map; returns
     (T_local_from_ego, fitness = share of source points with a correspondence, point-to-plane RMSE of the last
     stage's correspondences in m, conditioning)."""
-    points, normals = np.asarray(target.points), np.asarray(target.normals)
-    tree = cKDTree(points)
+    points, normals = target.points, target.normals
+    nearest = TrackedNearest(target.tree, len(source), NEAREST_MARGIN_M)
     T = init
     for dist in params.max_correspondence_m:
-        T, src, tgt = _point_to_plane_icp(source, points, normals, tree, T, dist, params.tukey_ratio * dist,
+        T, src, tgt = _point_to_plane_icp(source, points, normals, nearest, T, dist, params.tukey_ratio * dist,
                                           params.max_iterations)
     moved = transform_points(T, source[src])
-    residual = np.sum(normals[tgt] * (moved - points[tgt]), axis=1)
+    tgt_normals = normals.of(tgt)
+    residual = np.sum(tgt_normals * (moved - points[tgt]), axis=1)
     rmse = float(np.sqrt(np.mean(residual**2))) if len(residual) else float("nan")
     fitness = len(src) / max(len(source), 1)
-    return T, fitness, rmse, plane_conditioning(moved, normals[tgt], T[:3, 3])
+    return T, fitness, rmse, plane_conditioning(moved, tgt_normals, T[:3, 3])
 
 
 def _gate(prior: np.ndarray, T: np.ndarray, fitness: float, rmse: float, conditioning: float,
@@ -250,8 +263,8 @@ def refine_poses(clouds_ego: list[np.ndarray], logged_poses: np.ndarray,
     for k in range(F):
         prior = local_log[0] if k == 0 else chain[k - 1] @ invert_transform(local_log[k - 1]) @ local_log[k]
         chain[k] = prior
-        source = _cloud(clouds_ego[k]).voxel_down_sample(params.voxel_size_m)
-        n_src = len(source.points)
+        source = voxel_centroids(clouds_ego[k], params.voxel_size_m)
+        n_src = len(source)
         if k == 0:
             accepted[k] = True
         elif n_src < params.min_points:
@@ -259,14 +272,13 @@ def refine_poses(clouds_ego: list[np.ndarray], logged_poses: np.ndarray,
         elif not local_map.sweeps:
             reasons[k] = "empty local map"
         else:
-            T, fitness[k], rmse[k], cond = _register(np.asarray(source.points), local_map.target(), prior, params)
+            T, fitness[k], rmse[k], cond = _register(source, local_map.target(), prior, params)
             reasons[k] = _gate(prior, T, fitness[k], rmse[k], cond, params)
             accepted[k] = reasons[k] == ""
             if accepted[k]:
                 chain[k] = T
         if n_src >= params.min_points and (accepted[k] or not local_map.sweeps):
-            dense = _cloud(clouds_ego[k]).voxel_down_sample(params.map_voxel_m)
-            local_map.add(transform_points(chain[k], np.asarray(dense.points)))
+            local_map.add(transform_points(chain[k], voxel_centroids(clouds_ego[k], params.map_voxel_m)))
     anchor = fit_anchor(chain, local_log, params.log_sigma_xy_m, params.log_sigma_deg) \
         if params.anchor == "fit" and F else np.eye(4)
     poses = np.einsum("ij,jk,fkl->fil", origin, anchor, chain)

@@ -44,7 +44,9 @@ class TrackRefineParams:
     in the global frame (smooth_track_poses) over this half window; a track whose boxes' median speed is
     below static_speed_mps and whose boxes stay within static_travel_m is static (one pose for all its
     frames); weight_per_point: weight of an ICP-corrected frame in the smoothing is 1 + this * its points
-    (at most 400), an uncorrected frame weighs 1."""
+    (at most 400), an uncorrected frame weighs 1. snap_max_size_m / snap_radius_m / snap_min_height_m:
+    a static track whose box footprint is at most snap_max_size_m is moved in x, y (up to snap_radius_m)
+    onto its points higher than snap_min_height_m above the ground (fbsa.box_snap; 0 radius: off)."""
 
     rounds: int = 3
     icp_iterations: int = 8
@@ -61,6 +63,9 @@ class TrackRefineParams:
     static_speed_mps: float = 0.3
     static_travel_m: float = 0.5
     weight_per_point: float = 0.04
+    snap_max_size_m: float = 1.0
+    snap_radius_m: float = 0.5
+    snap_min_height_m: float = 0.2
 
 
 def apply_correction(points_box: np.ndarray, correction: np.ndarray) -> np.ndarray:

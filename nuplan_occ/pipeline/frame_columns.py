@@ -38,9 +38,12 @@ def point_coverage(points_ego: np.ndarray, occupied: np.ndarray, grid: GridSpec 
     index = index[inside]
     if len(index) == 0:
         return float("nan")
-    padded = np.pad(occupied, 1)
-    near = np.zeros(len(index), dtype=bool)
-    for offset in np.stack(np.meshgrid(*[np.arange(3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3):
-        shifted = index + offset
-        near |= padded[shifted[:, 0], shifted[:, 1], shifted[:, 2]]
-    return float(near.mean())
+    near = np.asarray(occupied, dtype=bool)
+    for axis in range(3):  # the 3 x 3 x 3 neighbourhood is one step along each axis in turn
+        grown = near.copy()
+        lower, upper = [slice(None)] * 3, [slice(None)] * 3
+        lower[axis], upper[axis] = slice(None, -1), slice(1, None)
+        grown[tuple(lower)] |= near[tuple(upper)]
+        grown[tuple(upper)] |= near[tuple(lower)]
+        near = grown
+    return float(near[index[:, 0], index[:, 1], index[:, 2]].mean())

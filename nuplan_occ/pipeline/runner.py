@@ -3,9 +3,10 @@ work folder by a key of (stage, params, code version, input keys).
 
 The frame stages run as one stream: for each output frame in order, every frame stage runs on it and the
 last one's `record` is encoded into the scene's shard at once; the frame's grids are released before the
-next frame is composed. The stream's scene output, `rows` (the shard's manifest rows), is cached under the
-last frame stage's key, so a finished scene is answered from the cache; a scene interrupted mid-stream
-starts its stream again (its shard is published only when complete), giving the same bytes."""
+next frame is composed (a frame stage's `prepare` runs once, before the first frame). The stream's scene
+output, `rows` (the shard's manifest rows), is cached under the last frame stage's key, so a finished scene
+is answered from the cache; a scene interrupted mid-stream starts its stream again (its shard is published
+only when complete), giving the same bytes."""
 
 from __future__ import annotations
 
@@ -130,6 +131,11 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
         from nuplan_occ.storage import DatasetWriter
 
         inputs = [{name: obtain(name) for name in stage.inputs if name not in frame_artifacts} for stage in frame_stages]
+        for k, stage in enumerate(frame_stages):
+            if stage.prepare is not None:
+                started = time.perf_counter()
+                inputs[k].update(stage.prepare(inputs[k], params_of(stage)))
+                timed(stage, time.perf_counter() - started)
         shard = DatasetWriter(task.out_root, metadata={"params": {}}).open_shard(task.shard_key)
         for position in obtain("scene").output_positions():
             frame: dict[str, Any] = {"position": position}

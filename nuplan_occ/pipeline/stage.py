@@ -28,6 +28,10 @@ class Stage:
     the scene, plus the outputs of earlier frame stages); it may set "failure" (reason) to skip the frame's
     remaining stages but the last, which turns the frame into its record.
     params_section: the params section it reads (default: its name), when two stages share one.
+    prepare: frame stages only, optional: prepare(inputs, params) -> dict, run once per scene before its
+    first frame on the stage's scene inputs; its outputs are added to them for every frame (per-scene work
+    the frames share, e.g. a spatial index; made from the inputs by the stage's own code, so the stage's
+    cache key covers it).
     """
 
     name: str
@@ -40,6 +44,7 @@ class Stage:
     doc: str = field(default="", compare=False)
     per_frame: bool = False
     params_section: str = ""
+    prepare: Callable[[dict[str, Any], Any], dict[str, Any]] | None = None
 
     @property
     def params_name(self) -> str:

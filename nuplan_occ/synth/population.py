@@ -170,7 +170,8 @@ def _parked(net: RoadNetwork, preset: Preset, rng: np.random.Generator, accept) 
 
 def _static_objects(net: RoadNetwork, scenery: Scenery, preset: Preset, ego: EgoRoute, rng: np.random.Generator, accept) -> None:
     lay = net.layout
-    route = ego.path.xy[:: max(1, len(ego.path.xy) // 200)]
+    driven = ego.path.s <= ego.motion.s[-1] if preset.static_on_driven_route else np.ones(len(ego.path.s), bool)
+    route = ego.path.xy[driven][:: max(1, int(driven.sum()) // 200)]
     kinds = preset.static_kinds
     candidates = []
     for kind in kinds:

@@ -71,7 +71,9 @@ SMALL_OBJECT_KINDS = (
 @dataclass(frozen=True)
 class Preset:
     """World size and sensor density. Azimuth counts are per full 360 degrees of each LiDAR.
-    static_kinds: the static boxed objects, placed in turn within static_route_distance_m of the ego route."""
+    static_kinds: the static boxed objects, placed in turn within static_route_distance_m of the ego route
+    (with static_on_driven_route, of the part of it the ego drives within the log, so that every object
+    is passed)."""
 
     name: str
     layout: RoadLayout
@@ -88,6 +90,7 @@ class Preset:
     pole_spacing: float
     static_kinds: tuple[StaticKind, ...] = DEFAULT_STATIC_KINDS
     static_route_distance_m: float = 45.0
+    static_on_driven_route: bool = False
 
 
 PRESETS: dict[str, Preset] = {
@@ -102,7 +105,7 @@ PRESETS: dict[str, Preset] = {
     "small_objects": Preset("small_objects", RoadLayout(), scene_seconds=2.0, top_azimuths=800, side_azimuths=480,
                             n_vehicles=2, n_pedestrians=0, n_cyclists=0, n_parked=0, n_static_objects=15,
                             n_buildings=4, tree_spacing=30.0, pole_spacing=60.0, static_kinds=SMALL_OBJECT_KINDS,
-                            static_route_distance_m=15.0),
+                            static_route_distance_m=15.0, static_on_driven_route=True),
 }
 
 

@@ -1,7 +1,7 @@
 """Compose one frame's grids (semantics, instance ids, flow) from the background surface and placed objects.
 
 Everything is in the EGO frame of the frame (metres, m/s). Order of operations:
-1. background surface -> exact voxels (voxelize.mesh_voxel_indices); its ground height per column is
+1. background surface -> exact voxels (voxelize.mesh_voxel_grid); its ground height per column is
    estimated (ground.estimate_ground_height);
 2. background voxels whose centre is inside a current box (grown by `box_margin_m`) are removed unless
    they are in the ground layer (within ground_tolerance_m of the local ground): the object replaces
@@ -27,7 +27,7 @@ from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import OTHER
 from nuplan_occ.voxel.ground import estimate_ground_height, ground_height_index, label_background
 from nuplan_occ.voxel.voxelize import (
-    VoxelizeError, box_voxel_indices, fill_enclosed, in_box, indices_to_grid, inside_grid, mesh_voxel_indices,
+    VoxelizeError, box_voxel_indices, fill_enclosed, in_box, inside_grid, mesh_voxel_grid, mesh_voxel_indices,
 )
 
 
@@ -91,7 +91,8 @@ def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_
     keep = np.zeros(len(idx), dtype=bool)
     if not inside.any():
         return keep
-    _, inverse, counts = np.unique(idx[inside], axis=0, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(np.ravel_multi_index(idx[inside].T, grid.shape), return_inverse=True,
+                                   return_counts=True)
     inverse = inverse.reshape(-1)
     crowded = counts >= min_count
     if anchors is not None:
@@ -149,11 +150,11 @@ def compose_frame(background_vertices: np.ndarray, background_faces: np.ndarray,
                   ground_layer_classes: tuple[int, ...] = ()) -> FrameGrids:
     """The frame's grids (see module doc). background_vertices (V, 3) metres in the ego frame,
     background_faces (F, 3) int (empty: vertices are points); bev uint8 (X, Y) or None;
-    ground_layer_classes: object classes whose voxels in the ground layer (the layer holding the
+    ground_layer_classes: object classes (ids > 0) whose voxels in the ground layer (the layer holding the
     column's estimated ground height) are ground instead (the road under a car's body)."""
     margin = grid.voxel_size / 2.0 if box_margin_m is None else box_margin_m
     try:
-        background = indices_to_grid(mesh_voxel_indices(background_vertices, background_faces, grid), grid)
+        background = mesh_voxel_grid(background_vertices, background_faces, grid)
     except VoxelizeError as err:
         raise VoxelizeError(f"background surface: {err}") from err
     ground_height = estimate_ground_height(background, grid)
@@ -162,23 +163,27 @@ def compose_frame(background_vertices: np.ndarray, background_faces: np.ndarray,
     instance = np.zeros(grid.shape, dtype=np.uint16)
     flow = np.zeros((*grid.shape, 3), dtype=np.float16)
     object_class = np.zeros(grid.shape, dtype=np.uint8)
+    painted = [np.zeros((0, 3), dtype=np.int64)]
     for obj in objects:
         idx = object_voxel_indices(obj, grid, fill_objects, margin)
         i, j, k = idx[:, 0], idx[:, 1], idx[:, 2]
         object_class[i, j, k] = obj.class_id
         instance[i, j, k] = obj.instance_id
         flow[i, j, k] = np.asarray(obj.velocity, dtype=np.float16).reshape(3)
+        painted.append(idx)
+    i, j, k = np.concatenate(painted).T  # every voxel an object painted (repeats allowed)
     if ground_layer_classes:
-        layer = ground_height_index(ground_height, grid)
-        in_layer = (np.arange(grid.shape[2])[None, None, :] == layer[:, :, None]) & (layer[:, :, None] >= 0)
-        to_ground = in_layer & np.isin(object_class, ground_layer_classes)
-        background |= to_ground
-        object_class[to_ground], instance[to_ground], flow[to_ground] = 0, 0, 0
-    is_object = object_class > 0
-    background &= ~is_object
+        layer = ground_height_index(ground_height, grid)[i, j]
+        to_ground = (k == layer) & (layer >= 0) & np.isin(object_class[i, j, k], ground_layer_classes)
+        g = (i[to_ground], j[to_ground], k[to_ground])
+        background[g] = True
+        object_class[g], instance[g], flow[g] = 0, 0, 0
+    is_object = object_class[i, j, k] > 0
+    i, j, k = i[is_object], j[is_object], k[is_object]
+    background[i, j, k] = False
     if bev is None:
         semantics = np.where(background, np.uint8(OTHER), np.uint8(0)).astype(np.uint8)
     else:
         semantics = label_background(background, bev, grid, ground_tolerance_m, ground_height)
-    semantics[is_object] = object_class[is_object]
+    semantics[i, j, k] = object_class[i, j, k]
     return FrameGrids(semantics, instance, flow, background, ground_height)

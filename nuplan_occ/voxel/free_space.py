@@ -1,4 +1,4 @@
-"""Free-space consistency of a frame's background with its own LiDAR rays. Pure numpy.
+"""Free-space consistency of a frame's background with its own LiDAR rays.
 
 The background surface of a frame comes from the whole scene's aggregate. Where the aggregate is sparse
 (far rings, ground a mover hid most of the time) the reconstruction can stand where this frame's rays
@@ -11,24 +11,28 @@ bridging a road to a raised walkway across a gap. A background voxel is cleared 
 - its centre lies more than `ground_margin_m` above the local ground height (the ground voxel itself is
   never cleared: rays graze it before they reach the ground further on).
 
-Grids are indexed [x, y, z] in the EGO frame of the frame (see nuplan_occ.grid).
+Grids are indexed [x, y, z] in the EGO frame of the frame (see nuplan_occ.grid). Points are moved between
+frames by `nuplan_occ.voxel.frame_lookup` (its arithmetic, not numpy's BLAS).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from nuplan_occ.geometry import transform_points
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
+from nuplan_occ.voxel.traversal import grid_args
 from nuplan_occ.voxel.visibility import FREE
 
 
-def point_support(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
-    """bool (X, Y, Z): voxels holding at least one of points_ego (N, 3, ego frame, m)."""
-    idx, inside = grid.point_to_index(points_ego)
-    support = np.zeros(grid.shape, dtype=bool)
-    support[tuple(idx[inside].T)] = True
-    return support
+def point_support(points: np.ndarray, grid: GridSpec = DEFAULT_GRID,
+                  T_ego_from_points: np.ndarray | None = None) -> np.ndarray:
+    """bool (X, Y, Z): voxels holding at least one of points (N, 3, m), in the ego frame or moved into it by
+    T_ego_from_points (4x4)."""
+    T = np.eye(4) if T_ego_from_points is None else np.asarray(T_ego_from_points, dtype=np.float64)
+    support = np.zeros(int(np.prod(grid.shape)), dtype=bool)
+    mark_points(np.ascontiguousarray(points, dtype=np.float64), T, *grid_args(grid), support)
+    return support.reshape(grid.shape)
 
 
 def clearable_background(occupied_background: np.ndarray, support: np.ndarray, ground_height: np.ndarray | None,
@@ -53,18 +57,18 @@ def packed_free(observation: np.ndarray) -> np.ndarray:
     return np.packbits((np.asarray(observation) == FREE).reshape(-1))
 
 
-def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: list[np.ndarray], free_bits: list[np.ndarray],
+def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: np.ndarray, free_bits: np.ndarray,
                          grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     """(N,) bool: voxel centres (N, 3, this frame's ego frame, m) that lie in a voxel another frame's rays
-    crossed (set in that frame's `packed_free` bits, its grid reached by T_other_from_ego, 4x4). The
-    background is static: space any frame saw through holds no background, whatever moved there at other
-    times."""
+    crossed (set in that frame's `packed_free` bits free_bits[f] (F, n_bytes), its grid reached by
+    T_other_from_ego[f] (F, 4, 4)). The background is static: space any frame saw through holds no
+    background, whatever moved there at other times. A centre stops at the first frame that saw through it:
+    the cost is (centres x frames) lookups at most."""
     n_bytes = (int(np.prod(grid.shape)) + 7) // 8
+    bits = np.asarray(free_bits, dtype=np.uint8)
+    transforms = np.asarray(T_other_from_ego, dtype=np.float64).reshape(-1, 4, 4)
+    if bits.ndim != 2 or bits.shape[1] != n_bytes or len(bits) != len(transforms):
+        raise ValueError(f"free_in_other_frames: packed bits have shape {bits.shape}, expected ({len(transforms)}, {n_bytes})")
     free = np.zeros(len(centres_ego), dtype=bool)
-    for T, bits in zip(T_other_from_ego, free_bits):
-        if bits.shape != (n_bytes,):
-            raise ValueError(f"free_in_other_frames: packed bits have shape {bits.shape}, expected ({n_bytes},)")
-        idx, inside = grid.point_to_index(transform_points(T, centres_ego))
-        flat = (idx[:, 0] * grid.shape[1] + idx[:, 1]) * grid.shape[2] + idx[:, 2]
-        free |= inside & ((bits[flat >> 3] >> (7 - (flat & 7))) & 1).astype(bool)
+    any_bit_set(np.ascontiguousarray(centres_ego, dtype=np.float64), transforms, bits, *grid_args(grid), free)
     return free

@@ -1,4 +1,5 @@
-"""Local ground height of each grid column and ground-layer labeling of background voxels. Pure numpy/scipy.
+"""Local ground height of each grid column and ground-layer labeling of background voxels (numpy/scipy; the
+labeling loop is a numba kernel).
 
 Heights are metres in the EGO frame (z up), per column (i, j) of the grid.
 
@@ -15,6 +16,7 @@ Ground estimate (a one-window progressive morphological filter, as used for LiDA
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -76,12 +78,23 @@ def label_background(background_occupied: np.ndarray, bev: np.ndarray, grid: Gri
         ground_height = estimate_ground_height(background_occupied, grid)
     _check_shape(ground_height, grid.shape[:2], "label_background ground_height")
     z = grid.z_min + (np.arange(grid.shape[2]) + 0.5) * grid.voxel_size
-    with np.errstate(invalid="ignore"):
-        near_ground = np.abs(z[None, None, :] - ground_height[:, :, None]) <= ground_tolerance_m + 1e-9
-    out = np.where(background_occupied, np.uint8(OTHER), np.uint8(0)).astype(np.uint8)
-    ground_layer = background_occupied & near_ground
-    out[ground_layer] = np.broadcast_to(np.asarray(bev, dtype=np.uint8)[:, :, None], out.shape)[ground_layer]
+    out = np.zeros(grid.shape, dtype=np.uint8)
+    _label_ground_layer(np.asarray(background_occupied, dtype=bool), np.asarray(bev, dtype=np.uint8),
+                        np.asarray(ground_height, dtype=np.float64), z, ground_tolerance_m + 1e-9, out)
     return out
+
+
+@numba.njit(cache=True)
+def _label_ground_layer(occupied: np.ndarray, bev: np.ndarray, ground_height: np.ndarray, z: np.ndarray,
+                        tolerance: float, out: np.ndarray) -> None:
+    """out[i, j, k] = bev[i, j] where occupied and |z[k] - ground_height[i, j]| <= tolerance, OTHER where
+    occupied otherwise (also where the height is NaN); out starts zero."""
+    for i in range(occupied.shape[0]):
+        for j in range(occupied.shape[1]):
+            h = ground_height[i, j]
+            for k in range(occupied.shape[2]):
+                if occupied[i, j, k]:
+                    out[i, j, k] = bev[i, j] if abs(z[k] - h) <= tolerance else OTHER
 
 
 def ground_height_index(ground_height: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:

@@ -98,6 +98,32 @@ def test_segments_through_a_yawed_box():
     assert np.allclose(starts_box[0], [-5.0, 0.0, 0.0]) and np.allclose(ends_box[0], [15.0, 0.0, 0.0])
 
 
+def test_segments_through_box_picks_every_crossing_among_many():
+    """The compiled cull only preselects: the crossings are exactly those of the slab test on all segments,
+    including segments grazing a face, running inside a face's plane and starting inside the box."""
+    from nuplan_occ.fbsa.box_cull import segments_near_box
+    from nuplan_occ.fbsa.carve import clip_segments_to_box
+
+    rng = np.random.default_rng(4)
+    center, yaw, size = np.array([8.0, -3.0, 0.5]), 0.7, np.array([4.5, 1.9, 1.6])
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    ends = rng.uniform(-20, 30, (20000, 3))
+    starts = np.where(rng.random((20000, 1)) < 0.9, [1.5, 0.0, 1.6], rng.uniform(-20, 30, (20000, 3)))
+    grazing_box = np.array([[2.25, 0.95, -2.0], [2.25, 0.95, 2.0], [-3.0, 0.95, 0.0], [3.0, 0.95, 0.0],
+                            [0.0, 0.0, 0.0], [0.0, 0.0, 0.1]])  # along an edge, along a face, inside
+    grazing = (grazing_box @ R) + center
+    starts, ends = np.vstack([starts, grazing[::2]]), np.vstack([ends, grazing[1::2]])
+    starts_box, ends_box = (starts - center) @ R.T, (ends - center) @ R.T
+    t0, t1 = clip_segments_to_box(starts_box, ends_box, size / 2)
+    crossing = t0 < t1
+    assert segments_near_box(starts, ends, center, yaw, size / 2, 1e-6)[crossing].all()
+    got_starts, got_ends = segments_through_box(starts, ends, center, yaw, size)
+    assert 100 < len(got_starts) == crossing.sum() and crossing[-1]  # the segment inside the box
+    np.testing.assert_allclose(got_starts, starts_box[crossing], atol=1e-12)
+    np.testing.assert_allclose(got_ends, ends_box[crossing], atol=1e-12)
+
+
 def test_lattice_tiles_the_box_and_inputs_are_checked():
     counts, edge = lattice_shape(np.array([4.5, 1.9, 1.55]), 0.1)
     assert counts.tolist() == [45, 19, 16] and np.all(edge <= 0.1) and np.allclose(counts * edge, [4.5, 1.9, 1.55])

@@ -96,3 +96,30 @@ def test_frames_stream_one_at_a_time_and_a_failing_frame_gets_its_row(tmp_path):
     again = SceneResult("log-a", "scene-a")
     assert run_stages(task, PIPELINE, ("rows",), None, again)["rows"] == rows
     assert again.computed == []  # the stream's rows come from the cache while the shard is published
+
+
+def _prepare(inputs, params):
+    inputs["scene"].calls.append(("prepare", None, 0))
+    return {"base": 1}
+
+
+def _voxelize_prepared(inputs, frame, params):
+    return {"grid": np.full(GRID.shape, inputs["base"] + frame["position"], dtype=np.uint8)}
+
+
+def test_a_frame_stage_prepares_once_per_scene_before_its_first_frame(tmp_path):
+    task = SceneTask("db", "sensors", "maps", "log-a", 1, "scene-token", "scene-a", str(tmp_path / "out"),
+                     str(tmp_path / "work"), {})
+    pipeline = [PIPELINE[0], Stage("voxelize", ("scene",), ("grid",), _Params, _voxelize_prepared, per_frame=True,
+                                   prepare=_prepare), PIPELINE[2]]
+    result = SceneResult("log-a", "scene-a")
+    artifacts = run_stages(task, pipeline, ("rows", "scene"), None, result)
+    assert artifacts["scene"].calls == [("prepare", None, 0)]
+    assert [r["status"] for r in artifacts["rows"]] == ["ok"] * FRAMES
+    assert "voxelize" in result.stage_seconds
+    shard = (tmp_path / "out" / "shards" / "log-a" / "scene-a.tar").read_bytes()
+    reference = tmp_path / "reference"
+    expected = [_record(task, p, arrays={"semantics": np.full(GRID.shape, 1 + p, dtype=np.uint8)})
+                for p in range(FRAMES)]
+    DatasetWriter(str(reference), {"params": {}}).write_shard(task.shard_key, expected)
+    assert (reference / "shards" / "log-a" / "scene-a.tar").read_bytes() == shard

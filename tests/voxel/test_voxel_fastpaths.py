@@ -1,8 +1,8 @@
 """The fast traversal / voxelization paths give exactly what the straightforward implementations give.
 
-The references below are the original (slow) formulations: every ray traversed over its whole length
-with all entries generated at once; every triangle split and each (sub-triangle, voxel) candidate
-tested with the separating-axis theorem on (M, 3, 3) arrays."""
+The references below are the straightforward (slow) formulations: every ray traversed over its whole
+length with all entries generated at once; every (triangle, voxel of its bounding box) candidate tested
+with the separating-axis theorem on (M, 3, 3) arrays."""
 
 import numpy as np
 import pytest
@@ -11,9 +11,19 @@ from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.io.types import CameraCalibration
 from nuplan_occ.voxel import voxelize
-from nuplan_occ.voxel.visibility import _clip_to_box, camera_rays, camera_visibility, lidar_observation
+from nuplan_occ.voxel.visibility import camera_rays, camera_visibility, lidar_observation
 
 GRID = GridSpec(x_min=-6, x_max=6, y_min=-5, y_max=5, z_min=-2, z_max=2, voxel_size=0.25)
+
+
+def clip_to_box(o, d, shape):
+    """Parameter range [t0, t1] within [0, 1] of segments o + t d (N, 3, voxel units) inside [0, shape]."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (0.0 - o) / d
+        tb = (shape - o) / d
+    t_lo = np.where(d == 0, np.where((o >= 0) & (o < shape), -np.inf, np.inf), np.minimum(ta, tb))
+    t_hi = np.where(d == 0, np.where((o >= 0) & (o < shape), np.inf, -np.inf), np.maximum(ta, tb))
+    return np.maximum(t_lo.max(axis=1), 0.0), np.minimum(t_hi.min(axis=1), 1.0)
 
 
 def reference_entries(starts, ends, grid):
@@ -21,7 +31,7 @@ def reference_entries(starts, ends, grid):
     shape = np.asarray(grid.shape)
     o_all = (starts - grid.lower) / grid.voxel_size
     d_all = (ends - grid.lower) / grid.voxel_size - o_all
-    t0, t1 = _clip_to_box(o_all, d_all, shape.astype(np.float64))
+    t0, t1 = clip_to_box(o_all, d_all, shape.astype(np.float64))
     rays = np.flatnonzero(t0 < t1)
     o, d, t0, t1 = o_all[rays], d_all[rays], t0[rays], t1[rays]
     a, b = o + t0[:, None] * d, o + t1[:, None] * d
@@ -107,25 +117,18 @@ def test_camera_visibility_equals_full_traversal(seed):
     assert 0 < got.sum() < got.size
 
 
-def reference_triangle_voxels(tri_units):
-    """Split every triangle to edges < 1 voxel, test each (sub-triangle, voxel) of its 2x2x2 box by SAT."""
+def reference_triangle_voxels(tri):
+    """Test each (triangle, voxel of its bounding box) candidate by SAT on the closed cube [v-EPS, v+1-EPS]."""
     eps, h = voxelize.EPS, 0.5
-    parts = []
-    edges = np.stack([tri_units[:, 1] - tri_units[:, 0], tri_units[:, 2] - tri_units[:, 1],
-                      tri_units[:, 0] - tri_units[:, 2]], axis=1)
-    n_split = np.maximum(np.ceil(np.linalg.norm(edges, axis=2).max(axis=1) / 0.999), 1).astype(int)
-    for n in np.unique(n_split):
-        g = tri_units[n_split == n]
-        w = voxelize._subdivision_template(int(n))
-        e1, e2 = (g[:, 1] - g[:, 0])[:, None, None, :], (g[:, 2] - g[:, 0])[:, None, None, :]
-        parts.append((g[:, None, None, 0, :] + w[None, :, :, 0:1] * e1 + w[None, :, :, 1:2] * e2).reshape(-1, 3, 3))
-    tri = np.concatenate(parts)
-    base = np.floor(tri.min(axis=1) + eps).astype(np.int64)
-    offsets = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-    t_idx = np.repeat(np.arange(len(tri)), 8)
-    vox = base[t_idx] + np.tile(offsets, (len(tri), 1))
-    top = np.floor(tri.max(axis=1) + eps).astype(np.int64)[t_idx]
-    t_idx, vox = t_idx[np.all(vox <= top, axis=1)], vox[np.all(vox <= top, axis=1)]
+    first = np.floor(tri.min(axis=1) + eps).astype(np.int64)
+    last = np.floor(tri.max(axis=1) + eps).astype(np.int64)
+    t_idx, vox = [], []
+    for t in range(len(tri)):
+        axes = [np.arange(a, b + 1) for a, b in zip(first[t], last[t])]
+        box = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        t_idx.append(np.full(len(box), t))
+        vox.append(box)
+    t_idx, vox = np.concatenate(t_idx), np.concatenate(vox)
     u = tri[t_idx] - (vox + (h - eps))[:, None, :]
     ok = np.all((u.min(axis=1) <= h) & (u.max(axis=1) >= -h), axis=1)
     normal = np.cross(u[:, 1] - u[:, 0], u[:, 2] - u[:, 0])
@@ -135,7 +138,8 @@ def reference_triangle_voxels(tri_units):
             p = u[:, :, b] * f[:, None, a] - u[:, :, a] * f[:, None, b]
             r = h * (np.abs(f[:, a]) + np.abs(f[:, b]))
             ok &= (p.min(axis=1) <= r) & (p.max(axis=1) >= -r)
-    return np.unique(vox[ok], axis=0)
+    single = np.all(first == last, axis=1)[t_idx]  # a triangle inside one voxel touches it
+    return np.unique(vox[ok | single], axis=0)
 
 
 @pytest.mark.parametrize("scale, count", [(0.4, 300), (1.0, 300), (3.0, 300), (12.0, 200)])

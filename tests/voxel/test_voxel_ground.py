@@ -53,3 +53,16 @@ def test_sloped_ground_with_curb_kept_at_voxel_precision():
     occ[i, 50:, k + 1] = True  # a one-voxel curb along y
     h = estimate_ground_height(occ, GRID)
     assert np.array_equal(ground_height_index(h, GRID), k[:, None] + (np.arange(64)[None, :] >= 50))
+
+
+def test_label_background_equals_the_columnwise_formula():
+    rng = np.random.default_rng(2)
+    occ = rng.random(GRID.shape) < 0.3
+    bev = rng.choice([ROAD, OTHER_GROUND, ROAD_LINE], size=GRID.shape[:2]).astype(np.uint8)
+    z = GRID.z_min + (np.arange(GRID.shape[2]) + 0.5) * GRID.voxel_size
+    h = rng.choice(z, size=GRID.shape[:2]) + rng.choice([0.0, 0.3, -0.3, 0.31, 0.1], size=GRID.shape[:2])
+    h[rng.random(GRID.shape[:2]) < 0.1] = np.nan  # unknown ground: OTHER
+    with np.errstate(invalid="ignore"):
+        near = np.abs(z[None, None, :] - h[:, :, None]) <= 0.3 + 1e-9
+    expected = np.where(occ, np.where(near, bev[:, :, None], OTHER), 0)
+    assert np.array_equal(label_background(occ, bev, GRID, 0.3, h), expected)

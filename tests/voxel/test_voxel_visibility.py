@@ -38,6 +38,16 @@ def test_ray_leaving_the_grid_and_many_rays_agree_with_dense_sampling():
     assert (obs > 0).sum() <= sampled.sum() + 300 + 150  # and little more (corner slivers, returns)
 
 
+def test_rays_to_non_finite_returns_are_ignored():
+    rng = np.random.default_rng(4)
+    origin = np.array([0.3, -0.2, 0.4])
+    ends = origin + rng.normal(size=(200, 3)) * [8, 8, 1.5]
+    bad = np.array([[np.nan, 0, 0], [np.inf, 1, 0], [-np.inf, -np.inf, np.nan]])
+    with np.errstate(invalid="ignore"):  # the return voxel of a NaN point is looked up (and dropped) too
+        with_bad = lidar_observation(np.vstack([ends[:100], bad, ends[100:]]), origin, GRID)
+    assert np.array_equal(with_bad, lidar_observation(ends, origin, GRID))
+
+
 def test_wall_occludes_what_is_behind_it():
     # camera at the origin looking along +x (OpenCV axes: z_cam = x_ego, x_cam = -y_ego, y_cam = -z_ego)
     R = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)

@@ -1,0 +1,165 @@
+"""k nearest points by a compiled kd-tree: sliding-midpoint splits of the widest side into leaves of at most
+LEAF_SIZE points, then a depth-first search per query, nearer child first, pruned by each node's bounding
+box and by the k-th best distance so far.
+
+Distances are sqrt(dx^2 + dy^2 + dz^2) in the points' frame (metres), each row sorted ascending: the
+same values as scipy's `cKDTree.query` (which of equally distant points a tie picks may differ, the
+distances do not). `knn_distances` gives every point's distances to its k nearest points of the same
+cloud (itself included); `KdTree` answers queries of other points, optionally within a bound.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+LEAF_SIZE = 24
+"""Most points in a leaf of the tree."""
+
+
+@numba.njit(cache=True)
+def _build(points: np.ndarray, leaf_size: int):
+    """(order, start, end, child, lo, hi): the points' permutation and, per node, its slice of order,
+    its first child (-1 for a leaf; the second is child + 1) and its bounding box."""
+    n = len(points)
+    order = np.arange(n)
+    cap = 2 * n + 1
+    start = np.empty(cap, np.int64)
+    end = np.empty(cap, np.int64)
+    child = np.full(cap, -1, np.int64)
+    lo = np.empty((cap, 3))
+    hi = np.empty((cap, 3))
+    start[0], end[0] = 0, n
+    nodes = 1
+    stack = np.empty(cap, np.int64)
+    stack[0] = 0
+    top = 1
+    while top:
+        top -= 1
+        node = stack[top]
+        s, e = start[node], end[node]
+        for d in range(3):
+            lo[node, d] = np.inf
+            hi[node, d] = -np.inf
+        for i in range(s, e):
+            for d in range(3):
+                v = points[order[i], d]
+                lo[node, d] = min(lo[node, d], v)
+                hi[node, d] = max(hi[node, d], v)
+        dim = 0
+        for d in range(1, 3):
+            if hi[node, d] - lo[node, d] > hi[node, dim] - lo[node, dim]:
+                dim = d
+        if e - s <= leaf_size or hi[node, dim] == lo[node, dim]:
+            continue
+        mid = 0.5 * (lo[node, dim] + hi[node, dim])
+        i, j = s, e - 1
+        while i <= j:  # points below mid to the front; both sides keep at least one point
+            if points[order[i], dim] < mid:
+                i += 1
+            else:
+                order[i], order[j] = order[j], order[i]
+                j -= 1
+        child[node] = nodes
+        start[nodes], end[nodes] = s, i
+        start[nodes + 1], end[nodes + 1] = i, e
+        stack[top] = nodes
+        stack[top + 1] = nodes + 1
+        top += 2
+        nodes += 2
+    return order, start, end, child, lo, hi
+
+
+@numba.njit(cache=True)
+def _box_distance2(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    total = 0.0
+    for d in range(3):
+        if p[d] < lo[d]:
+            total += (lo[d] - p[d]) ** 2
+        elif p[d] > hi[d]:
+            total += (p[d] - hi[d]) ** 2
+    return total
+
+
+@numba.njit(cache=True)
+def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
+            lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(distances (Q, k), indices (Q, k)): the k nearest points closer than sqrt(bound2) to each query,
+    ascending; inf and index len(points) where fewer lie that close. ordered = points[order] (leaves are
+    contiguous slices of it); queries are searched in query_order."""
+    n = len(ordered)
+    distances = np.full((len(queries), k), np.inf)
+    indices = np.full((len(queries), k), n, np.int64)
+    best = np.empty(k)
+    best_index = np.empty(k, np.int64)
+    stack = np.empty(2 * n + 1, np.int64)
+    stack_d2 = np.empty(2 * n + 1)  # squared distance from the query to the node's box
+    for q in query_order:
+        p = queries[q]
+        have = 0
+        worst = bound2  # a candidate must be nearer than this: the bound, then the k-th best so far
+        stack[0], stack_d2[0] = 0, 0.0
+        top = 1
+        while top:
+            top -= 1
+            node = stack[top]
+            if stack_d2[top] >= worst:
+                continue
+            first = child[node]
+            if first < 0:
+                for i in range(start[node], end[node]):
+                    r = ordered[i]
+                    d2 = (p[0] - r[0]) ** 2 + (p[1] - r[1]) ** 2 + (p[2] - r[2]) ** 2
+                    if d2 < worst:
+                        slot = have if have < k else k - 1
+                        while slot > 0 and best[slot - 1] > d2:  # insertion into the sorted k best
+                            best[slot] = best[slot - 1]
+                            best_index[slot] = best_index[slot - 1]
+                            slot -= 1
+                        best[slot] = d2
+                        best_index[slot] = order[i]
+                        have = min(have + 1, k)
+                        if have == k:
+                            worst = best[k - 1]
+                continue
+            a, b = first, first + 1  # push the farther child first, so the nearer one is searched first
+            da, db = _box_distance2(p, lo[a], hi[a]), _box_distance2(p, lo[b], hi[b])
+            if da < db:
+                a, b, da, db = b, a, db, da
+            stack[top], stack_d2[top] = a, da
+            stack[top + 1], stack_d2[top + 1] = b, db
+            top += 2
+        for j in range(have):
+            distances[q, j] = math.sqrt(best[j])
+            indices[q, j] = best_index[j]
+    return distances, indices
+
+
+class KdTree:
+    """A kd-tree over points (n, 3) for nearest-point queries (frame of the points, metres); `data` the
+    points, `n` their number (the names of scipy's cKDTree, whose query it answers the same way)."""
+
+    def __init__(self, points: np.ndarray):
+        self.data = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        self.n = len(self.data)
+        self._nodes = _build(self.data, LEAF_SIZE)
+        self._ordered = self.data[self._nodes[0]]
+
+    def query(self, queries: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """(distances (Q, k), indices (Q, k)): ascending distances to the k nearest points closer than
+        distance_upper_bound to each of queries (Q, 3), and their indices; inf and n where fewer are."""
+        pts = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+        return _search(self._ordered, *self._nodes, pts, np.arange(len(pts)), int(k), float(distance_upper_bound) ** 2)
+
+
+def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) ascending distances (m) from each point (N, 3) to its k nearest points, itself included
+    (requires 1 <= k <= N); the points are searched in tree order, so consecutive searches share nodes."""
+    tree = KdTree(points)
+    if not 1 <= k <= tree.n:
+        raise ValueError(f"knn_distances: need 1 <= k <= {tree.n} points, got k = {k}")
+    return _search(tree._ordered, *tree._nodes, tree.data, tree._nodes[0], k, np.inf)[0]

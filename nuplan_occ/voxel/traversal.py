@@ -1,0 +1,189 @@
+"""Exact voxel traversal of line segments through the grid (numba kernels, one segment at a time).
+
+A segment from a to b (ego metres) is o + t d, t in [0, 1], in voxel units (o = (a - lower) / voxel_size,
+d = (b - lower) / voxel_size - o); it is clipped to the grid box [0, shape] to t in [t0, t1). The voxels
+it passes through are its entries: the voxel at its clipped start (entered at t0) and, for every lattice
+plane k of an axis it crosses with t = (k - o) / d < t1, the voxel it enters there. An entry's voxel is
+the one holding o + (t + nudge) d, nudge = NUDGE_VOXELS / |d| (a hair after the crossing), evaluated
+per axis in floating point; entries whose voxel lies outside the grid are dropped. Slivers shorter than
+NUDGE_VOXELS (two planes crossed within the nudge) are therefore skipped; where a segment crosses two
+planes at exactly the same t (through a lattice edge) both entries give the diagonal voxel, never a
+corner neighbour.
+
+The crossings of one axis are walked in order of t ((k - o) / d is monotonic in k), WALK_PAD at a time
+in branch-free (vectorized) runs; a camera ray's walks stop at its first occupied voxel
+(`mark_visible_to_first_hit`). Every crossing time is computed from its plane index, never accumulated,
+so the entries do not depend on the walk order. Flat voxel indices are C order over the grid's (X, Y, Z).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from nuplan_occ.grid import GridSpec
+
+NUDGE_VOXELS = 1e-6
+"""How far after a plane crossing (voxels along the segment) its entered voxel is evaluated."""
+
+WALK_PAD = 16
+"""Crossings are computed in whole runs of this many (a multiple of the SIMD width)."""
+
+
+def grid_args(grid: GridSpec) -> tuple[np.ndarray, float, np.ndarray]:
+    """(lower corner (3,) m, voxel size m, shape (3,) int64) of `grid`, as the kernels take them."""
+    return grid.lower, float(grid.voxel_size), np.asarray(grid.shape, dtype=np.int64)
+
+
+@numba.njit(cache=True, inline="always")
+def _axis(start, end, lower, voxel_size, n):
+    """o, d (voxel units) of one axis of the segment start -> end (m) and its parameter interval
+    [t_lo, t_hi] inside [0, n] (all t, or none, where d is 0)."""
+    o = (start - lower) / voxel_size
+    d = (end - lower) / voxel_size - o
+    if d == 0.0:
+        if o >= 0.0 and o < n:
+            return o, d, -np.inf, np.inf
+        return o, d, np.inf, -np.inf
+    ta = (0.0 - o) / d
+    tb = (n - o) / d
+    return o, d, min(ta, tb), max(ta, tb)
+
+
+@numba.njit(cache=True, inline="always")
+def _segment(starts, ends, r, lower, voxel_size, shape):
+    """(meets the grid box, o (3), d (3), t0, t1, nudge / |d|) of segment r; False for a segment that
+    misses the box or is not finite."""
+    ox, dx, lx, hx = _axis(starts[r, 0], ends[r, 0], lower[0], voxel_size, shape[0])
+    oy, dy, ly, hy = _axis(starts[r, 1], ends[r, 1], lower[1], voxel_size, shape[1])
+    oz, dz, lz, hz = _axis(starts[r, 2], ends[r, 2], lower[2], voxel_size, shape[2])
+    t0 = max(max(max(lx, ly), lz), 0.0)
+    t1 = min(min(min(hx, hy), hz), 1.0)
+    finite = (math.isfinite(ox) and math.isfinite(oy) and math.isfinite(oz)
+              and math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz))
+    inv = NUDGE_VOXELS / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+    return finite and t0 < t1, ox, oy, oz, dx, dy, dz, t0, t1, inv
+
+
+@numba.njit(cache=True, inline="always")
+def _planes(o, d, t0, t1, n):
+    """(first plane, plane step, number of planes) crossed in order of t by one axis o + t d, t in
+    [t0, t1], within [0, n] (planes beyond it enter no voxel of the grid)."""
+    if d == 0.0:
+        return 0, 0, 0
+    p, q = o + t0 * d, o + t1 * d
+    first = max(math.floor(min(p, q)) + 1, 0)
+    last = min(math.floor(max(p, q)), n)
+    count = max(last - first + 1, 0)
+    return (first, 1, count) if d > 0.0 else (last, -1, count)
+
+
+@numba.njit(cache=True, inline="always")
+def _voxel(ox, oy, oz, dx, dy, dz, t, inv, fx, fy, fz, ny, nz):
+    """Flat index of the voxel holding o + (t + inv) d (-1 outside the grid of (fx, fy, fz) voxels)."""
+    step = t + inv
+    x, y, z = ox + step * dx, oy + step * dy, oz + step * dz
+    if x < 0.0 or x >= fx or y < 0.0 or y >= fy or z < 0.0 or z >= fz:
+        return -1
+    return (int(x) * ny + int(y)) * nz + int(z)
+
+
+@numba.njit(cache=True, inline="always")
+def _walk(oa, da, k0, dk, n, i0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base):
+    """Record crossings i0 .. i0 + WALK_PAD - 1 (plane k0 + i dk of the axis o_a + t d_a) at
+    walk_t[base + i], walk_v[base + i]: (t, entered voxel), voxel -1 past the n planes, outside the grid or
+    where t >= t1. Branch-free, so it vectorizes."""
+    for i in range(i0, i0 + WALK_PAD):
+        t = ((k0 + i * dk) - oa) / da
+        step = t + inv
+        x, y, z = ox + step * dx, oy + step * dy, oz + step * dz
+        inside = (i < n) & (t < t1) & (x >= 0.0) & (x < fx) & (y >= 0.0) & (y < fy) & (z >= 0.0) & (z < fz)
+        v = (int(x) * ny + int(y)) * nz + int(z)
+        walk_t[base + i] = t
+        walk_v[base + i] = v if inside else -1
+
+
+@numba.njit(cache=True)
+def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
+    """out[v] = value for every entry v of the segments starts -> ends ((N, 3) m; lower, voxel_size,
+    shape: `grid_args`; out: flat grid)."""
+    fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
+    ny, nz = shape[1], shape[2]
+    walk_t, walk_v = np.empty(WALK_PAD), np.empty(WALK_PAD, np.int64)
+    for r in range(starts.shape[0]):
+        meets, ox, oy, oz, dx, dy, dz, t0, t1, inv = _segment(starts, ends, r, lower, voxel_size, shape)
+        if not meets:
+            continue
+        v = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
+        if v >= 0:
+            out[v] = value
+        for a in range(3):
+            oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
+            k0, dk, n = _planes(oa, da, t0, t1, shape[a])
+            for i0 in range(0, n, WALK_PAD):
+                _walk(oa, da, k0 + i0 * dk, dk, n - i0, 0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz,
+                      walk_t, walk_v, 0)
+                for m in range(WALK_PAD):
+                    if walk_v[m] >= 0:
+                        out[walk_v[m]] = value
+
+
+@numba.njit(cache=True)
+def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, visible):
+    """visible[v] = True for the entries v of each segment starts -> ends ((N, 3) m) with t <= t_hit, its
+    first blocking entry's t (the least t >= t_block of an entry whose voxel is occupied; all entries when
+    none blocks). occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
+
+    Per segment, each axis' crossings are recorded WALK_PAD at a time and scanned in order of t until the
+    first blocking one or past the t_hit found so far (the axis with the most crossings first: the others
+    then stop early); the recorded entries with t <= t_hit are then marked."""
+    fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
+    ny, nz = shape[1], shape[2]
+    size = shape.max() + 1 + WALK_PAD
+    walk_t, walk_v = np.empty(3 * size), np.empty(3 * size, np.int64)
+    for r in range(starts.shape[0]):
+        meets, ox, oy, oz, dx, dy, dz, t0, t1, inv = _segment(starts, ends, r, lower, voxel_size, shape)
+        if not meets:
+            continue
+        t_hit = np.inf
+        v_start = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
+        if v_start >= 0 and occupied[v_start] and t0 >= t_block:
+            t_hit = t0
+        ax, ay, az = abs(dx), abs(dy), abs(dz)
+        a0 = 0 if (ax >= ay and ax >= az) else (1 if ay >= az else 2)
+        walked_x = walked_y = walked_z = 0
+        for j in range(3):
+            a = (a0 + j) % 3
+            oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
+            k0, dk, n = _planes(oa, da, t0, t1, shape[a])
+            base = a * size
+            m, stop = 0, False
+            while m < n and not stop:
+                _walk(oa, da, k0, dk, n, m, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base)
+                end = min(m + WALK_PAD, n)
+                while m < end:
+                    t, v = walk_t[base + m], walk_v[base + m]
+                    if t > t_hit:
+                        stop = True
+                        break
+                    m += 1
+                    if v >= 0 and occupied[v] and t >= t_block:
+                        t_hit, stop = t, True
+                        break
+            if a == 0:
+                walked_x = m
+            elif a == 1:
+                walked_y = m
+            else:
+                walked_z = m
+        if v_start >= 0 and t0 <= t_hit:
+            visible[v_start] = True
+        for a in range(3):
+            base = a * size
+            for m in range(walked_x if a == 0 else (walked_y if a == 1 else walked_z)):
+                if walk_t[base + m] > t_hit:
+                    break
+                if walk_v[base + m] >= 0:
+                    visible[walk_v[base + m]] = True

@@ -1,0 +1,64 @@
+"""Points moved into another grid's frame: exact voxels for a quarter turn plus whole-voxel shifts (integer
+arithmetic gives the truth), the same voxels as numpy's transform for a generic pose, and the first-hit
+lookup over several frames equal to the OR of per-frame lookups in any frame order."""
+
+import numpy as np
+
+from nuplan_occ.geometry import make_transform, transform_points, yaw_matrix
+from nuplan_occ.grid import GridSpec
+from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
+from nuplan_occ.voxel.traversal import grid_args
+
+GRID = GridSpec(x_min=-4, x_max=4, y_min=-3, y_max=3, z_min=-1, z_max=1, voxel_size=0.25)
+QUARTER = make_transform(np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]), [0.5, -0.75, 0.25])  # yaw 90 deg
+
+
+def centres_of(idx):
+    return GRID.index_to_center(idx)
+
+
+def test_quarter_turn_maps_voxel_centres_to_the_expected_voxels():
+    rng = np.random.default_rng(0)
+    idx = np.stack([rng.integers(0, n, 500) for n in GRID.shape], axis=1)
+    out = np.zeros(int(np.prod(GRID.shape)), bool)
+    mark_points(centres_of(idx), QUARTER, *grid_args(GRID), out)
+    # (x, y, z) -> (-y + 0.5, x - 0.75, z + 0.25) moves voxel centres to voxel centres: with x = -4 + (i + 0.5) / 4
+    # and y = -3 + (j + 0.5) / 4, voxel (i, j, k) goes to (29 - j, i - 7, k + 1)
+    moved = np.stack([29 - idx[:, 1], idx[:, 0] - 7, idx[:, 2] + 1], axis=1)
+    inside = np.all((moved >= 0) & (moved < GRID.shape), axis=1)
+    expected = np.zeros(GRID.shape, bool)
+    expected[tuple(moved[inside].T)] = True
+    assert 0 < inside.sum() < len(idx)
+    assert np.array_equal(out.reshape(GRID.shape), expected)
+
+
+def test_generic_pose_agrees_with_numpy_transform():
+    rng = np.random.default_rng(1)
+    T = make_transform(yaw_matrix(0.37) @ np.array([[1, 0, 0], [0, np.cos(0.02), -np.sin(0.02)], [0, np.sin(0.02), np.cos(0.02)]]),
+                       [0.31, -0.17, 0.05])
+    points = rng.uniform(-5, 5, size=(20000, 3)) * [1, 1, 0.3]
+    points[:3] = [np.nan, 0, 0], [np.inf, 0, 0], [1e30, 0, 0]
+    out = np.zeros(int(np.prod(GRID.shape)), bool)
+    mark_points(points, T, *grid_args(GRID), out)
+    idx, inside = GRID.point_to_index(transform_points(T, points[3:]))
+    expected = np.zeros(GRID.shape, bool)
+    expected[tuple(idx[inside].T)] = True
+    assert np.array_equal(out.reshape(GRID.shape), expected)
+
+
+def test_first_hit_lookup_is_the_or_over_frames_in_any_order():
+    rng = np.random.default_rng(2)
+    n_voxels = int(np.prod(GRID.shape))
+    grids = [rng.random(n_voxels) < p for p in (0.05, 0.3, 0.0)]
+    bits = np.stack([np.packbits(g) for g in grids])
+    transforms = np.stack([np.eye(4), QUARTER, make_transform(yaw_matrix(1.1), [0.2, 0.1, 0.0])])
+    points = rng.uniform(-4, 4, size=(3000, 3)) * [1, 0.75, 0.25]
+    expected = np.zeros(len(points), bool)
+    for T, g in zip(transforms, grids):
+        idx, inside = GRID.point_to_index(transform_points(T, points))
+        expected |= inside & g[np.ravel_multi_index(idx.T, GRID.shape)]
+    for order in ([0, 1, 2], [2, 1, 0], [1, 0, 2]):
+        out = np.zeros(len(points), bool)
+        any_bit_set(points, transforms[order], bits[order], *grid_args(GRID), out)
+        assert np.array_equal(out, expected)
+    assert 0 < expected.sum() < len(points)
