@@ -13,7 +13,6 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage.codecs import MEMBERS
@@ -22,27 +21,21 @@ from nuplan_occ.storage.manifest import MEMBER_FIELDS
 from nuplan_occ.storage.manifest_reader import ManifestIndex
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.reader import BlobRequest, ShardReader, decode_request, request_of
-from nuplan_occ.storage.records import STATUS_OK
+from nuplan_occ.storage.token_index import TokenIndex
 
 
-def _ints(table: pa.Table, name: str) -> np.ndarray:
-    """An integer column as int64 numpy, nulls as -1."""
-    return table[name].cast(pa.int64()).fill_null(-1).to_numpy()
-
-
-INDEX_COLUMNS = ("status", "token", "frame_index")
 FRAME_COLUMNS = ("key", "shard", "token", "log", "scene_token", "timestamp_us", "frame_index", "ego_to_global")
 
 
 class OccDataset:
     """Random access to the ok frames of a dataset root (local path or fsspec URL).
 
-    Opening reads only the manifest's index columns (status, token, scene, frame index, and what
-    resolving commits needs: `manifest_reader.ManifestIndex`); a frame's other columns are read when
+    Opening reads only the manifest's index columns (status, scene, frame index, and what resolving
+    commits and ordering need: `manifest_reader.ManifestIndex`); a frame's other columns are read when
     it is asked for. Attributes: `metadata` (dataset.json), `grid` (GridSpec), `labels` (id ->
-    {"name", "color"}), `scene_codes`
-    (int per frame, equal within a scene), `frame_index` (int64 per frame). `column(name)` reads one
-    manifest column of every ok frame; `manifest` is the whole table of ok frames (read on first use).
+    {"name", "color"}), `scene_codes` (int per frame, equal within a scene), `frame_index` (int64 per
+    frame, -1 where unknown). `column(name)` / `columns(names)` read manifest columns of every ok
+    frame; `manifest` is the whole table of ok frames (read on first use).
     Keeps shard handles open per process.
     """
 
@@ -54,13 +47,10 @@ class OccDataset:
             int(c["id"]): {"name": c["name"], "color": tuple(c["color"])} for c in self.metadata["labels"]["classes"]
         }
         self._index = ManifestIndex(root)
-        index = self._index.table(list(INDEX_COLUMNS))
-        ok = pc.equal(index["status"], STATUS_OK).combine_chunks().fill_null(False).to_numpy(zero_copy_only=False)
-        self._positions = np.flatnonzero(ok)
-        index = index.filter(ok)
-        self._tokens = index["token"].combine_chunks()
+        self._positions = np.flatnonzero(self._index.ok)
         self.scene_codes = self._index.scene_codes[self._positions]
-        self.frame_index = _ints(index, "frame_index")
+        self.frame_index = self._index.frame_index[self._positions]
+        self._tokens: TokenIndex | None = None
         self._manifest: pa.Table | None = None
         self._reader = ShardReader(root)
 
@@ -75,11 +65,15 @@ class OccDataset:
         """Manifest column `name` of every ok frame, in index order (reads that column only)."""
         return self._index.column(name, self._positions)
 
+    def columns(self, names: Sequence[str]) -> pa.Table:
+        """Manifest columns `names` of every ok frame, in index order (one pass over the manifest files)."""
+        return self._index.table(list(names), self._positions)
+
     def has_column(self, name: str) -> bool:
         return name in self._index.schema.names
 
     def __len__(self) -> int:
-        return self.manifest.num_rows
+        return len(self._positions)
 
     def __getitem__(self, i: int) -> dict:
         return self.get(i)
@@ -141,11 +135,22 @@ class OccDataset:
         return self.get_many([i], keys)[0]
 
     def index_of_token(self, token: str) -> int:
-        """Index of the ok frame with this lidar_pc token (KeyError if there is none)."""
-        found = pc.index(self._tokens, token).as_py()
-        if found < 0:
-            raise KeyError(f"{self.root}: no ok frame with token {token!r}")
-        return found
+        """Index of the ok frame with this lidar_pc token (the first one if several; KeyError if none).
+        The first call reads the token column once (`storage.token_index`); each call then reads the
+        tokens of its candidates only."""
+        if self._tokens is None:
+            self._tokens = TokenIndex(self._index.column("token"))
+        candidates = self._tokens.candidates(token)  # positions among all visible rows, ok or not
+        frames = np.searchsorted(self._positions, candidates)
+        is_ok = frames < len(self._positions)
+        is_ok[is_ok] = self._positions[frames[is_ok]] == candidates[is_ok]
+        frames = frames[is_ok]
+        if len(frames):
+            stored = self._index.column("token", self._positions[frames]).to_pylist()
+            found = [int(i) for i, t in zip(frames, stored) if t == token]
+            if found:
+                return found[0]
+        raise KeyError(f"{self.root}: no ok frame with token {token!r}")
 
     def close(self) -> None:
         """Close the shard handles of this process."""

@@ -26,19 +26,28 @@ from nuplan_occ.storage import clips
 from nuplan_occ.storage.errors import DatasetFormatError
 
 
-def _speeds(ds: OccDataset, name: str) -> np.ndarray:
-    if not ds.has_column(name):
-        raise DatasetFormatError(f"{ds.root}: manifest has no {name!r} column, needed for subsets")
-    return ds.column(name).cast(pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+def _index_columns(ds: OccDataset, subset: str | None) -> dict[str, np.ndarray]:
+    """Per frame: output_index where stored (-1 elsewhere) and, for a subset, the speeds (NaN where
+    null), read in one pass."""
+    speeds = ("ego_speed", "max_agent_speed") if subset is not None else ()
+    missing = [name for name in speeds if not ds.has_column(name)]
+    if missing:
+        raise DatasetFormatError(f"{ds.root}: manifest has no {missing[0]!r} column, needed for subsets")
+    stored = ("output_index",) if ds.has_column("output_index") else ()
+    if not stored + speeds:
+        return {"output_index": np.full(len(ds), -1, dtype=np.int64)}
+    table = ds.columns([*stored, *speeds])
+    columns = {name: table[name].cast(pa.float64()).fill_null(np.nan).to_numpy() for name in speeds}
+    columns["output_index"] = (table["output_index"].cast(pa.int64()).fill_null(-1).to_numpy() if stored
+                               else np.full(len(ds), -1, dtype=np.int64))
+    return columns
 
 
-def _output_index(ds: OccDataset, scenes: np.ndarray) -> np.ndarray:
+def _output_index(ds: OccDataset, scenes: np.ndarray, stored: np.ndarray) -> np.ndarray:
     """The manifest's output_index; derived from frame_index for scenes written without it."""
-    derived = clips.output_index_from_frame_index(scenes, ds.frame_index)
-    if not ds.has_column("output_index"):
-        return derived
-    stored = ds.column("output_index").cast(pa.int64()).fill_null(-1).to_numpy(zero_copy_only=False)
-    return np.where(stored >= 0, stored, derived)
+    if np.all(stored >= 0):
+        return stored
+    return np.where(stored >= 0, stored, clips.output_index_from_frame_index(scenes, ds.frame_index))
 
 
 class OccupancyDataset(torch.utils.data.Dataset):
@@ -63,12 +72,12 @@ class OccupancyDataset(torch.utils.data.Dataset):
         self.ds = OccDataset(path)
         self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
         scenes = self.ds.scene_codes
-        frames = _output_index(self.ds, scenes)
+        columns = _index_columns(self.ds, subset)
+        frames = _output_index(self.ds, scenes, columns["output_index"])
         self._order = clips.clip_order(scenes, frames)
         starts = clips.clip_starts(scenes, frames, self._order, clip_len, stride)
         if subset is not None:
-            flags = clips.subset_flags(subset, _speeds(self.ds, "ego_speed"), _speeds(self.ds, "max_agent_speed"),
-                                       theta_e, theta_o)
+            flags = clips.subset_flags(subset, columns["ego_speed"], columns["max_agent_speed"], theta_e, theta_o)
             starts = starts[clips.clips_all_flagged(flags, self._order, starts, clip_len)]
         self._starts = starts
 

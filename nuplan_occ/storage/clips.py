@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from nuplan_occ.storage import keyorder
+
 SUBSETS = ("spatial", "temporal")
 
 
@@ -52,8 +54,8 @@ def output_index_from_frame_index(scene_codes: np.ndarray, frame_index: np.ndarr
 
 
 def clip_order(scene_codes: np.ndarray, output_index: np.ndarray) -> np.ndarray:
-    """Row indices sorted by (scene, output_index): clips are windows of this order."""
-    return np.lexsort((output_index, scene_codes))
+    """Row indices (int64) stably sorted by (scene, output_index): clips are windows of this order."""
+    return keyorder.lex_order([np.asarray(scene_codes), np.asarray(output_index)])
 
 
 def clip_starts(scene_codes: np.ndarray, output_index: np.ndarray, order: np.ndarray, clip_len: int,
@@ -67,9 +69,11 @@ def clip_starts(scene_codes: np.ndarray, output_index: np.ndarray, order: np.nda
     if n:
         breaks[1:] = (scenes[1:] != scenes[:-1]) | (frames[1:] != frames[:-1] + 1)
     run_start = np.flatnonzero(breaks)
-    run_end = np.append(run_start[1:], n)
-    starts = [np.arange(a, b - clip_len + 1, stride) for a, b in zip(run_start, run_end) if b - a >= clip_len]
-    return np.concatenate(starts).astype(np.int64) if starts else np.zeros(0, dtype=np.int64)
+    run_length = np.append(run_start[1:], n) - run_start
+    per_run = np.where(run_length >= clip_len, (run_length - clip_len) // stride + 1, 0)
+    first_of_run = np.cumsum(per_run) - per_run
+    within = np.arange(int(per_run.sum()), dtype=np.int64) - np.repeat(first_of_run, per_run)
+    return np.repeat(run_start, per_run).astype(np.int64) + within * stride
 
 
 def subset_flags(subset: str, ego_speed: np.ndarray, max_agent_speed: np.ndarray, theta_e: float,

@@ -2,8 +2,9 @@
 
 Steps: list the manifest files (a snapshot), read their visible rows in manifest order (commit ids
 kept), publish them atomically as `manifest/compacted/<newest commit id in them>.parquet`, then delete
-the snapshot's files. Readers see the same rows before, during and after: while both the output and
-its inputs exist, resolution counts each commit once (`fragments.visible_rows`).
+the snapshot's files and the local folders they leave empty. Readers see the same rows before, during
+and after: while both the output and its inputs exist, resolution counts each commit once
+(`fragments.visible_rows`).
 
 Safe while writers run: a fragment committed after the snapshot is not read and not deleted, and its
 commit id is newer than every commit it supersedes, whether those sit in fragments or in the compacted
@@ -13,13 +14,14 @@ A compacted pre-fragment dataset (manifest.parquet) can no longer be read by ver
 
 from __future__ import annotations
 
+import os
 import secrets
 from dataclasses import dataclass
 
 import pyarrow.compute as pc
 
-from nuplan_occ.storage.fragments import COMMIT_COLUMN, COMPACTED_DIR
-from nuplan_occ.storage.fsio import atomic_put, resolve
+from nuplan_occ.storage.fragments import COMMIT_COLUMN, COMPACTED_DIR, SCENES_DIR, SHARDS_DIR
+from nuplan_occ.storage.fsio import atomic_put, is_local, resolve
 from nuplan_occ.storage.manifest import to_parquet_bytes
 from nuplan_occ.storage.manifest_reader import ManifestIndex
 
@@ -52,4 +54,19 @@ def compact(root: str, row_group_size: int = COMPACTED_ROW_GROUP_SIZE) -> Compac
     for folded in index.paths:
         if folded != output:
             fs.rm_file(folded)
+    if is_local(fs):
+        _remove_emptied_folders(path, [p for p in index.paths if p != output])
     return CompactionResult(len(index.paths), rows_before, table.num_rows, output)
+
+
+def _remove_emptied_folders(root_path: str, files: list[str]) -> None:
+    """Remove the local folders of the folded `files` left empty, up to and including manifest/shards
+    and manifest/scenes (a folder a writer has put a file in since is not empty and stays)."""
+    tops = (f"{root_path}/{SHARDS_DIR}", f"{root_path}/{SCENES_DIR}")
+    for folder in sorted({p.rsplit("/", 1)[0] for p in files}, key=len, reverse=True):
+        while any(folder == top or folder.startswith(f"{top}/") for top in tops):
+            try:
+                os.rmdir(folder)
+            except OSError:  # not empty, or removed already
+                break
+            folder = folder.rsplit("/", 1)[0]

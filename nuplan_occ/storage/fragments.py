@@ -37,10 +37,11 @@ import time
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
+import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 import fsspec
 
-from nuplan_occ.storage.fsio import atomic_put
+from nuplan_occ.storage.fsio import arrow_filesystem, atomic_put
 from nuplan_occ.storage.manifest import to_parquet_bytes
 
 LEGACY_MANIFEST = "manifest.parquet"
@@ -69,9 +70,21 @@ def _commit_ids_in(fs: fsspec.AbstractFileSystem, folder: str) -> list[str]:
     return sorted(i for i in ids if _COMMIT_ID.match(i))
 
 
+def _newest_commit_under(fs: fsspec.AbstractFileSystem, folder: str) -> list[str]:
+    """The greatest commit id of the fragment files anywhere under `folder` (none if it does not exist)."""
+    try:
+        found = fs.find(folder)
+    except FileNotFoundError:
+        return []
+    ids = [p.rsplit("/", 1)[-1].removesuffix(".parquet") for p in found if p.endswith(".parquet")]
+    return sorted(i for i in ids if _COMMIT_ID.match(i))[-1:]
+
+
 def new_commit_id(fs: fsspec.AbstractFileSystem, root_path: str, folders: list[str]) -> str:
-    """A commit id greater than every commit id in `folders` and the compacted files (see module doc)."""
+    """A commit id greater than every commit id in `folders`, the compacted files and the scene
+    fragments of older datasets (see module doc; `compact` folds the latter away)."""
     seen = [i for folder in [*folders, f"{root_path}/{COMPACTED_DIR}"] for i in _commit_ids_in(fs, folder)[-1:]]
+    seen += _newest_commit_under(fs, f"{root_path}/{SCENES_DIR}")
     floor = max((int(i[:19]) + 1 for i in seen), default=0)
     return f"{max(time.time_ns(), floor):019d}-{secrets.token_hex(8)}"
 
@@ -123,41 +136,39 @@ def manifest_files(fs: fsspec.AbstractFileSystem, root_path: str) -> list[str]:
     then scene fragments (written when the unit was the scene), then shard fragments, each group in name
     order (temp files of interrupted writes are not listed)."""
     legacy = [f"{root_path}/{LEGACY_MANIFEST}"] if fs.exists(f"{root_path}/{LEGACY_MANIFEST}") else []
+    filesystem = arrow_filesystem(fs)
 
     def parquet_under(folder: str) -> list[str]:
-        try:
-            found = fs.find(folder)
-        except FileNotFoundError:
-            return []
-        return sorted(p for p in found if p.endswith(".parquet") and not p.rsplit("/", 1)[-1].startswith("."))
+        found = filesystem.get_file_info(pafs.FileSelector(folder, recursive=True, allow_not_found=True))
+        return sorted(f.path for f in found if f.type == pafs.FileType.File and f.path.endswith(".parquet")
+                      and not f.base_name.startswith("."))
 
     return legacy + [path for folder in (COMPACTED_DIR, SCENES_DIR, SHARDS_DIR)
                      for path in parquet_under(f"{root_path}/{folder}")]
 
 
-def commit_ranks(commit_ids: pa.ChunkedArray | pa.Array) -> np.ndarray:
-    """Rank of every row's commit id in string order (int64; null = -1, older than any commit)."""
-    if isinstance(commit_ids, pa.ChunkedArray):
-        commit_ids = commit_ids.combine_chunks()
-    encoded = pc.dictionary_encode(commit_ids)
-    rank_of_code = np.empty(len(encoded.dictionary), dtype=np.int64)
-    rank_of_code[pc.sort_indices(encoded.dictionary).to_numpy()] = np.arange(len(encoded.dictionary))
-    codes = encoded.indices.fill_null(-1).to_numpy().astype(np.int64)
-    ranks = np.full(len(codes), -1, dtype=np.int64)
-    ranks[codes >= 0] = rank_of_code[codes[codes >= 0]]
-    return ranks
+def ranks_of_codes(codes: np.ndarray, dictionary: pa.Array) -> np.ndarray:
+    """Rank of every row's commit id in string order (int32; null = -1, older than any commit), from
+    dictionary-encoded ids: `codes` index `dictionary` (the distinct ids), -1 = null."""
+    rank_of_code = np.empty(len(dictionary) + 1, dtype=np.int32)
+    rank_of_code[pc.sort_indices(dictionary).to_numpy()] = np.arange(len(dictionary), dtype=np.int32)
+    rank_of_code[-1] = -1
+    return rank_of_code[codes]
 
 
-def visible_rows(shard_codes: np.ndarray, ranks: np.ndarray, file_of_row: np.ndarray) -> np.ndarray:
+def visible_rows(shard_codes: np.ndarray, ranks: np.ndarray, file_row_counts: np.ndarray) -> np.ndarray:
     """Bool per row: the row is visible (see module docstring). shard_codes: int codes of the shard
-    column; ranks: `commit_ranks`; file_of_row: index of the file holding the row (files in
-    `manifest_files` order)."""
+    column; ranks: `ranks_of_codes`; file_row_counts: rows of each file, the rows being those of the
+    files in `manifest_files` order."""
     if not len(shard_codes):
         return np.zeros(0, dtype=bool)
     n_shards = int(shard_codes.max()) + 1
-    newest = np.full(n_shards, -2, dtype=np.int64)
+    newest = np.full(n_shards, -2, dtype=ranks.dtype)
     np.maximum.at(newest, shard_codes, ranks)
     keep = ranks == newest[shard_codes]
-    first_file = np.full(n_shards, np.iinfo(np.int64).max, dtype=np.int64)
+    if np.count_nonzero(file_row_counts) <= 1:
+        return keep
+    file_of_row = np.repeat(np.arange(len(file_row_counts), dtype=np.int32), file_row_counts)
+    first_file = np.full(n_shards, np.iinfo(np.int32).max, dtype=np.int32)
     np.minimum.at(first_file, shard_codes[keep], file_of_row[keep])
     return keep & (file_of_row == first_file[shard_codes])

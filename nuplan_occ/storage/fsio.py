@@ -11,6 +11,7 @@ import os
 import uuid
 
 import fsspec
+import pyarrow.fs as pafs
 from fsspec.implementations.local import LocalFileSystem
 
 TEMP_MARKER = ".tmp-"
@@ -27,13 +28,17 @@ def is_local(fs: fsspec.AbstractFileSystem) -> bool:
     return isinstance(fs, LocalFileSystem)
 
 
+def arrow_filesystem(fs: fsspec.AbstractFileSystem) -> pafs.FileSystem:
+    """The pyarrow filesystem over the same files (paths as fsspec gives them)."""
+    return pafs.LocalFileSystem() if is_local(fs) else pafs.PyFileSystem(pafs.FSSpecHandler(fs))
+
+
 def atomic_put(fs: fsspec.AbstractFileSystem, path: str, data: bytes) -> None:
     """Publish `data` at `path` so that readers see either the old object or the whole new one."""
     parent, name = path.rsplit("/", 1)
     if is_local(fs):
-        os.makedirs(parent, exist_ok=True)
         tmp = f"{parent}/.{name}{TEMP_MARKER}{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        with open(tmp, "wb") as f:
+        with _create(tmp) as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -41,3 +46,15 @@ def atomic_put(fs: fsspec.AbstractFileSystem, path: str, data: bytes) -> None:
     else:
         fs.pipe_file(path, data)
 
+
+
+def _create(path: str, attempts: int = 3):
+    """Open a new local file for writing, making its folder; retried when the folder vanishes in between
+    (a compaction removing the folders it emptied)."""
+    for attempt in range(attempts):
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        try:
+            return open(path, "wb")
+        except FileNotFoundError:
+            if attempt == attempts - 1:
+                raise

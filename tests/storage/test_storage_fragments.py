@@ -85,6 +85,7 @@ def test_compaction_keeps_what_readers_see_and_is_safe_with_writers(tmp_path, mo
     monkeypatch.undo()
     compact(root)
     assert [p.relative_to(tmp_path).parts[:2] for p in tmp_path.rglob("*.parquet")] == [("manifest", "compacted")]
+    assert [p.name for p in (tmp_path / "manifest").iterdir()] == ["compacted"]  # no empty shard folders left
     assert read_manifest(root).equals(seen) and validate_dataset(root) == []
 
     monkeypatch.setattr(time, "time_ns", lambda: 1_000)  # a writer with a clock behind the compacted commits
@@ -108,6 +109,23 @@ def test_pre_fragment_manifest_stays_readable_and_is_superseded_per_shard(tmp_pa
     assert _speeds(root) == [1.0] * 3 + [4.0] * 3
     compact(root)
     assert not (tmp_path / "manifest.parquet").exists() and _speeds(root) == [1.0] * 3 + [4.0] * 3
+
+
+def test_scene_fragments_of_older_datasets_are_superseded_and_folded_away(tmp_path, monkeypatch):
+    root = str(tmp_path)
+    writer = _writer(root)
+    records = synthetic_log(SMALL, "log-a", 0, [3], ego_speeds=[1.0] * 3)
+    ahead = f"{time.time_ns() + 10**15:019d}-{0:016x}"  # written by a machine whose clock ran ahead
+    old = rows_to_table(writer.write_shard("log-a", records), writer._hist_len)
+    old = old.set_column(old.schema.get_field_index("commit_id"), "commit_id", pa.array([ahead] * 3))
+    folder = tmp_path / "manifest" / "scenes" / "log-a" / records[0].scene_token
+    folder.mkdir(parents=True)
+    pq.write_table(old, folder / f"{ahead}.parquet")
+    assert _speeds(root) == [1.0] * 3
+    _commit_log(writer, "log-a", 0, [3], 2.0)  # the same shard rebuilt
+    assert _speeds(root) == [2.0] * 3
+    compact(root)
+    assert [p.name for p in (tmp_path / "manifest").iterdir()] == ["compacted"] and _speeds(root) == [2.0] * 3
 
 
 def _unknown_identity(records: list) -> list:
@@ -163,10 +181,12 @@ def test_reader_opens_with_index_columns_only_and_finds_frames(tmp_path, monkeyp
     pq.write_table(table, tmp_path / "manifest" / "compacted" / "a.parquet", row_group_size=1000)
     _writer(str(tmp_path)).commit([])
     read_columns = []
-    original = ManifestIndex._read
-    monkeypatch.setattr(ManifestIndex, "_read", lambda self, cols: read_columns.extend(cols) or original(self, cols))
+    original = pq.ParquetFile.read
+    monkeypatch.setattr(pq.ParquetFile, "read", lambda self, columns=None, **kw: read_columns.extend(columns)
+                        or original(self, columns, **kw))
     ds = open_dataset(str(tmp_path))
-    assert set(read_columns) <= {"shard", "scene_token", "commit_id", "log_id", "timestamp_us", "frame_index", "status", "token"}
+    assert set(read_columns) == {"shard", "scene_token", "commit_id", "log_id", "timestamp_us", "frame_index", "status"}
+    monkeypatch.undo()
     ok = table.filter(pc.equal(table["status"], "ok"))
     assert len(ds) == ok.num_rows == 2940
     for i in (0, 1234, len(ds) - 1):
