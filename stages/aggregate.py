@@ -106,4 +106,5 @@ STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "objec
               outputs=("background_aggregate", "objects", "object_through_rays"), params_type=AggregateParams,
               run=run,
               code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic",
-                    "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.voxel_reduce"), doc=__doc__ or "")
+                    "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.voxel_reduce",
+                    "nuplan_occ.voxel.visibility", "nuplan_occ.voxel.traversal"), doc=__doc__ or "")
