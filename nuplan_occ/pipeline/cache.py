@@ -1,7 +1,7 @@
 """Content-keyed store of stage outputs under OUT/work/, written atomically.
 
 Only files this build wrote itself are read back (zstd-compressed pickle protocol 5 of the stage
-outputs); nothing from the input data is ever unpickled here. A key is the sha256 of the stage name, its params, its code
+outputs, numeric arrays coded by pipeline.array_codec); nothing from the input data is ever unpickled here. A key is the sha256 of the stage name, its params, its code
 version and the keys of its inputs, so a rerun finds finished work and a changed param or code reruns
 only what depends on it.
 """
@@ -19,6 +19,10 @@ from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
+from nuplan_occ.pipeline import array_codec
+
+CACHE_ZSTD_LEVEL = 3
+"""zstd level of cache entries (bytes and seconds per level: bench/report-manifest.md)."""
 
 def stable_hash(*parts: Any) -> str:
     """sha256 hex of JSON-serialisable parts (dataclasses are turned into dicts)."""
@@ -68,5 +72,5 @@ class StageCache:
 
     def put(self, stage: str, key: str, outputs: dict[str, Any]) -> None:
         """Store outputs atomically."""
-        payload = zstandard.ZstdCompressor(level=1).compress(pickle.dumps(outputs, protocol=5))
+        payload = zstandard.ZstdCompressor(level=CACHE_ZSTD_LEVEL).compress(array_codec.dumps(outputs))
         atomic_write_bytes(self._path(stage, key), payload)
