@@ -24,6 +24,7 @@ import numpy as np
 
 from nuplan_occ import __version__
 from nuplan_occ.dataset import open_dataset
+from nuplan_occ.evaluate import N_IDS, confusion, pooled_metrics
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.io.data_root import resolve_logs
@@ -144,6 +145,7 @@ def bench_quality(data_root: Path, out: Path, frame_stride: int = 1) -> dict[str
     truth = open_dataset(str(data_root / "truth"))
     built = open_dataset(str(out))
     ours, paper, trails, paper_trails, holes, paper_holes = [], [], [], [], [], []
+    ours_confusion, paper_confusion = np.zeros((N_IDS, N_IDS), np.int64), np.zeros((N_IDS, N_IDS), np.int64)
     for artifacts in scene_artifacts(data_root, out):
         scene = artifacts["scene"]
         layers = None
@@ -160,6 +162,8 @@ def bench_quality(data_root: Path, out: Path, frame_stride: int = 1) -> dict[str
             baseline = paper_method_frame(artifacts, token, position_of[token], layers)
             ours.append(occupancy_metrics(semantics, reference["semantics"], mask))
             paper.append(occupancy_metrics(baseline, reference["semantics"], mask))
+            ours_confusion += confusion(semantics, reference["semantics"], mask)
+            paper_confusion += confusion(baseline, reference["semantics"], mask)
             swept = swept_mask(scene, artifacts["registration"].poses[position_of[token]])
             swept &= reference["semantics"] == 0  # truly empty now: anything built there is a trail
             trails.append(trail_count(semantics, swept, objects))
@@ -172,15 +176,21 @@ def bench_quality(data_root: Path, out: Path, frame_stride: int = 1) -> dict[str
             paper_holes.append(ground_hole_rate(baseline, drivable, ground_index))
     return {
         "frames": len(ours),
-        "ours": summarize_metrics(ours, trails, holes),
-        "paper_method": summarize_metrics(paper, paper_trails, paper_holes),
+        "ours": summarize_metrics(ours, trails, holes, ours_confusion),
+        "paper_method": summarize_metrics(paper, paper_trails, paper_holes, paper_confusion),
     }
 
 
-def summarize_metrics(metrics: list[dict], trails: list[int], holes: list[float]) -> dict[str, Any]:
-    """Medians over frames of IoU, mIoU and per-class IoU; total trail voxels; median hole rate."""
+def summarize_metrics(metrics: list[dict], trails: list[int], holes: list[float], pooled_confusion: np.ndarray
+                      ) -> dict[str, Any]:
+    """Medians over frames of IoU, mIoU and per-class IoU; total trail voxels; median hole rate; and
+    "pooled": IoU, mIoU and per-class IoU of the confusion summed over the frames (as `nuplan-occ eval`
+    and Occ3D-style benchmarks count: a class absent from most frames' truth weighs by its voxels)."""
     classes = sorted({c for m in metrics for c in m["per_class"]})
+    pooled = pooled_metrics(pooled_confusion, classes)
     return {
+        "pooled": {"iou": pooled["iou"], "miou": pooled["miou"],
+                   "per_class_iou": {LABELS.names[c]: v for c, v in pooled["per_class"].items()}},
         "iou": float(np.median([m["iou"] for m in metrics])),
         "miou": float(np.median([m["miou"] for m in metrics])),
         "per_class_iou": {LABELS.names[c]: float(np.median([m["per_class"][c] for m in metrics if c in m["per_class"]]))
@@ -307,6 +317,12 @@ def render_markdown(report: dict) -> str:
                          [[name, q[name]["iou"], q[name]["miou"], q[name]["trail_voxels_total"], q[name]["ground_hole_rate"],
                            *[q[name]["per_class_iou"].get(c, float("nan")) for c in classes]]
                           for name in ("ours", "paper_method")]), ""]
+        if "pooled" in q["ours"]:
+            parts += ["Pooled over the frames (one confusion summed over every frame, as `nuplan-occ eval` counts):", "",
+                      _table(["method", "IoU", "mIoU", *classes],
+                             [[name, q[name]["pooled"]["iou"], q[name]["pooled"]["miou"],
+                               *[q[name]["pooled"]["per_class_iou"].get(c, float("nan")) for c in classes]]
+                              for name in ("ours", "paper_method")]), ""]
     for section, title in (("fbsa", "default synthetic log noise"), ("fbsa_noisy", "logged-pose noise 0.3 m / 1 deg + z drift")):
         if section not in report:
             continue

@@ -277,11 +277,18 @@ def render_scale_markdown(report: dict) -> str:
         parts += [f"## Quality against truth (inside the truth's mask_lidar, median over every "
                   f"{report['quality_frame_stride']}th frame)", "",
                   "Targets: IoU >= 0.90, mIoU >= 0.80, every class >= 0.5, zero trails, each better than the paper's method.",
-                  "", _table(["scene s", "method", "frames", "IoU", "mIoU", "trail voxels", "ground hole rate", *classes],
-                             [[r["seconds"], m, r["quality"]["frames"], r["quality"][m]["iou"], r["quality"][m]["miou"],
+                  "", _table(["scene s", "code", "method", "frames", "IoU", "mIoU", "trail voxels", "ground hole rate", *classes],
+                             [[r["seconds"], r["code"], m, r["quality"]["frames"], r["quality"][m]["iou"], r["quality"][m]["miou"],
                                r["quality"][m]["trail_voxels_total"], r["quality"][m]["ground_hole_rate"],
                                *[r["quality"][m]["per_class_iou"].get(c, float("nan")) for c in classes]]
                               for r in rows for m in ("ours", "paper_method")]), ""]
+        pooled = [r for r in rows if "pooled" in r["quality"]["ours"]]
+        if pooled:
+            parts += ["Pooled over the same frames (one confusion summed over them, as `nuplan-occ eval` counts):", "",
+                      _table(["scene s", "code", "method", "IoU", "mIoU", *classes],
+                             [[r["seconds"], r["code"], m, r["quality"][m]["pooled"]["iou"], r["quality"][m]["pooled"]["miou"],
+                               *[r["quality"][m]["pooled"]["per_class_iou"].get(c, float("nan")) for c in classes]]
+                              for r in pooled for m in ("ours", "paper_method")]), ""]
     if report.get("kiss_icp"):
         k = report["kiss_icp"]
         parts += [f"## KISS-ICP odometry as a registration front end ({k['sweeps']} sweeps of the 5 s log, "
