@@ -8,7 +8,9 @@ box's frame (they show where the object is not).
 
 Inputs: `scene`, `background`, `registration`, `object_boxes`, `object_points`.
 Outputs: `background_aggregate` (BackgroundAggregate, scene frame), `objects` (track -> ObjectAggregate),
-`object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m).
+`object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m), `frame_movers` (output
+sweep position -> (n, 3) float32, scene frame: the sweep's own background points where the aggregate
+removed points as dynamic).
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ from nuplan_occ.fbsa.aggregate import BackgroundAggregate, aggregate_background,
 from nuplan_occ.fbsa.carve import segments_through_box
 from nuplan_occ.fbsa.dynamic import seen_through
 from nuplan_occ.fbsa.split import outside_boxes
-from nuplan_occ.geometry import invert_transform
+from nuplan_occ.fbsa.voxel_reduce import voxel_keys
+from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
 
@@ -57,6 +60,22 @@ class AggregateParams:
     ground_keep_m: float = 0.03
 
 
+MOVER_CELL_M = 0.05
+"""Cell of the unboxed-mover lookup when the aggregate is not downsampled (m)."""
+
+
+def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray, frame_points: dict[int, np.ndarray],
+                    voxel_m: float) -> dict[int, np.ndarray]:
+    """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_points,
+    scene frame) in a downsampling cell of voxel_m whose kept point was removed as dynamic: the sweep's
+    unboxed movers, voxelized in that frame only (nuplan_occ.voxel.movers). The cell decides rather than the
+    kept point itself, since a cell keeps the earliest frame's point and a mover covers cells it had
+    crossed before."""
+    flagged = np.unique(voxel_keys(background.points[dynamic], voxel_m))
+    return {position: points[np.isin(voxel_keys(points, voxel_m), flagged)].astype(np.float32)
+            for position, points in frame_points.items()}
+
+
 def run(inputs: dict, params: AggregateParams) -> dict:
     scene = inputs["scene"]
     ok = scene.ok_indices()
@@ -77,6 +96,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
         voxel_downsample_m=params.voxel_downsample_m or None,
         crop=crop,
     )
+    frame_movers = {position: np.zeros((0, 3), np.float32) for position in outputs}
     if params.remove_dynamic and ok:
         used = ok[::max(1, params.dynamic_sweep_stride)]
         T_scene_from_ego = invert_transform(background.T_global_from_scene) @ poses[used]
@@ -85,6 +105,9 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                ground_clearance_m=params.dynamic_ground_clearance_m,
                                protect_dilation=params.dynamic_protect_dilation,
                                occupied_ratio=params.dynamic_occupied_ratio)
+        scene_from_global = invert_transform(background.T_global_from_scene)
+        frame_points = {p: transform_points(scene_from_global @ poses[p], clouds[ok.index(p)]) for p in outputs}
+        frame_movers = movers_by_frame(background, dynamic, frame_points, params.voxel_downsample_m or MOVER_CELL_M)
         background = BackgroundAggregate(background.points[~dynamic], background.sensor_origins[~dynamic],
                                          background.frame_ids[~dynamic], background.T_global_from_scene)
     objects = aggregate_objects([inputs["object_points"][i] for i in ok], [inputs["object_boxes"][i] for i in ok],
@@ -99,11 +122,13 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                     segments_through_box(origins, points, boxes.centers[k], float(boxes.yaws[k]), boxes.sizes[k]))
     object_through_rays = {track: (np.vstack([r[0] for r in rays]), np.vstack([r[1] for r in rays]))
                            for track, rays in through.items()}
-    return {"background_aggregate": background, "objects": objects, "object_through_rays": object_through_rays}
+    return {"background_aggregate": background, "objects": objects, "object_through_rays": object_through_rays,
+            "frame_movers": frame_movers}
 
 
 STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "object_boxes", "object_points"),
-              outputs=("background_aggregate", "objects", "object_through_rays"), params_type=AggregateParams,
+              outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers"),
+              params_type=AggregateParams,
               run=run,
               code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic",
                     "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.voxel_reduce",

@@ -6,7 +6,7 @@ exceed a voxel); solid objects are filled inside their surface. Gives instance i
 and per-voxel flow. Objects are placed by their corrected boxes (track stage).
 
 Inputs: `scene`, `registration`, `object_boxes`, `background_aggregate`, `background_surface`, `objects`,
-`object_surfaces`, `object_solids`; prepared once per scene: `background_tiles` (the background surface
+`object_surfaces`, `object_solids`, `frame_movers`; prepared once per scene: `background_tiles` (the background surface
 indexed on x-y tiles, so a frame's crop touches only the surface near it). Frame output: `grids` (the
 frame's FrameGrids; background labeled OTHER here), or `failure` for a sweep that did not load.
 """
@@ -17,12 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.geometry import invert_transform
+from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.io.types import Boxes
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.voxel.compose import PlacedObject, compose_frame
+from nuplan_occ.voxel.compose import FrameGrids, PlacedObject, compose_frame
+from nuplan_occ.voxel.movers import MoverVoxels, mover_voxels
 from nuplan_occ.voxel.surface_tiles import build_surface_tiles
 
 
@@ -37,7 +38,11 @@ class VoxelizeParams:
     its unobserved underside would otherwise fill the road layer; bench: vehicle IoU 0.49 -> 0.52).
     sparse_solid_categories: a voxel takes their carved solid only where it holds at least solid_min_cells
     solid cells (a 0.25 m voxel holds ~16 cells of 0.1 m) or a cell with an observed point: a voxel the
-    rays crossed but left a few never-crossed cells in (above a hood, behind a bumper) is free."""
+    rays crossed but left a few never-crossed cells in (above a hood, behind a bumper) is free.
+    unboxed_movers: paint the frame's own points the aggregate removed as dynamic into empty voxels, a
+    cluster spanning mover_vehicle_extent_m labeled vehicle, else other, clusters under
+    mover_min_voxels skipped (nuplan_occ.voxel.movers): a moving object without a box is occupied where it
+    is now instead of missing from every frame."""
 
     fill_objects: bool = True
     pedestrian_window: int = 2
@@ -47,6 +52,9 @@ class VoxelizeParams:
     ground_layer_categories: tuple[str, ...] = ("vehicle",)
     solid_min_cells: int = 4
     sparse_solid_categories: tuple[str, ...] = ("vehicle",)
+    unboxed_movers: bool = True
+    mover_min_voxels: int = 2
+    mover_vehicle_extent_m: float = 1.5
 
 
 def box_lattice_points(size: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -111,11 +119,23 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
     grids = compose_frame(
         vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects,
         ground_layer_classes=tuple(LABELS.box_category_to_id[c] for c in params.ground_layer_categories))
+    if params.unboxed_movers:
+        movers = mover_voxels(transform_points(T_ego_from_scene, inputs["frame_movers"][position]), DEFAULT_GRID,
+                              params.mover_min_voxels, params.mover_vehicle_extent_m)
+        grids.mover_voxels = paint_empty(grids, movers)
     return {"grids": grids}
+
+
+def paint_empty(grids: FrameGrids, movers: MoverVoxels) -> int:
+    """Give the empty voxels among `movers` their class (instance and flow stay 0); returns how many."""
+    i, j, k = movers.indices.T
+    empty = grids.semantics[i, j, k] == 0
+    grids.semantics[i[empty], j[empty], k[empty]] = movers.class_ids[empty]
+    return int(empty.sum())
 
 
 STAGE = Stage("voxelize",
               inputs=("scene", "registration", "object_boxes", "background_aggregate", "background_surface", "objects",
-                      "object_surfaces", "object_solids"),
+                      "object_surfaces", "object_solids", "frame_movers"),
               outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "",
               per_frame=True, prepare=prepare)

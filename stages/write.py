@@ -85,6 +85,7 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     columns["qa_point_coverage"] = point_coverage(sweep.cloud.xyz, semantics > 0)
     columns["qa_occupied_voxels"] = int((semantics > 0).sum())
     columns["qa_free_space_cleared"] = int(frame["free_cleared"])
+    columns["qa_unboxed_mover_voxels"] = int(grids.mover_voxels)
     columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
                                      scene.instance_ids, semantics, grids.instance))
     if "mask_lidar" in arrays:

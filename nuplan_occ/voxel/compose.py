@@ -74,13 +74,15 @@ class PlacedObject:
 class FrameGrids:
     """A frame's grids in the ego frame: semantics uint8 (X, Y, Z) label ids; instance uint16 (0 =
     background/empty); flow float16 (X, Y, Z, 3) m/s; occupied_background bool (X, Y, Z): background
-    voxels kept (not overwritten by objects); ground_height float (X, Y) metres (NaN unknown)."""
+    voxels kept (not overwritten by objects); ground_height float (X, Y) metres (NaN unknown);
+    mover_voxels: voxels painted for unboxed movers (nuplan_occ.voxel.movers), 0 when none were."""
 
     semantics: np.ndarray
     instance: np.ndarray
     flow: np.ndarray
     occupied_background: np.ndarray
     ground_height: np.ndarray | None = None
+    mover_voxels: int = 0
 
 
 def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_count: int,
