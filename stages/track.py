@@ -99,7 +99,7 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
         views = [first_points[i].get(track, (np.zeros((0, 3)), None))[0] for i in positions]
         corrections[track] = refine_track(views, params)
     snap = BoxSnapParams(max_size_m=params.snap_max_size_m, radius_m=params.snap_radius_m,
-                         min_height_m=params.snap_min_height_m)
+                         min_height_m=params.snap_min_height_m, keep_ratio=params.snap_keep_ratio)
     final = {}
     for track, positions in frames_of.items():
         final[track], static = smoothed_global_poses(scene, poses, initial, track, positions, corrections[track],

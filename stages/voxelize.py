@@ -54,7 +54,7 @@ class VoxelizeParams:
     sparse_solid_categories: tuple[str, ...] = ("vehicle",)
     unboxed_movers: bool = True
     mover_min_voxels: int = 2
-    mover_vehicle_extent_m: float = 1.5
+    mover_vehicle_extent_m: float = 2.5
 
 
 def box_lattice_points(size: np.ndarray, spacing_m: float) -> np.ndarray:

@@ -9,12 +9,15 @@ refined poses the sweeps of a scene are consistent with each other, so a static 
 frames, taken into its (one, static) box frame, form one cluster: the box is moved in x, y onto it.
 
 Procedure (box frame: origin at the box centre, x along its heading, z up; metres):
-1. `points_box` are the scene's points near the box, all frames, in the box frame;
+1. `points_box` are the scene's points near the box, all frames, in the box frame, within `z_band_m` of
+   the box's height span;
 2. the local ground is the `ground_quantile` of their heights (most points around a small object are
    ground); points less than `min_height_m` above it (road, curb) or above the box's top are ignored;
 3. the shift (dx, dy) within `radius_m` (lattice of `step_m`) that brings the most remaining points into
    the box footprint wins; among equal counts the smallest shift (then the first in lattice order) wins,
-   so the result is deterministic and a box already holding its points does not move.
+   so the result is deterministic and a box already holding its points does not move;
+4. a box that already holds `keep_ratio` of the winning count stays: the snap is for boxes that missed
+   their object, and a box holding much of it would only be pulled towards a larger neighbour.
 Pure numpy.
 """
 
@@ -30,8 +33,8 @@ class BoxSnapParams:
     """max_size_m: boxes whose longer footprint side is at most this are snapped; radius_m: largest shift
     searched; step_m: lattice step of the shifts; min_height_m: points must be this far above the local
     ground (a 0.15 m curb is not an object); ground_quantile: height quantile of the points around the box
-    taken as its ground; min_points: fewer object points than this leave the box where it is; keep_ratio:
-    see step 4 of the module docstring."""
+    taken as its ground; min_points: fewer object points than this leave the box where it is; z_band_m:
+    see object_points; keep_ratio: see step 4 of the module docstring."""
 
     max_size_m: float = 1.0
     radius_m: float = 0.5
@@ -39,13 +42,17 @@ class BoxSnapParams:
     min_height_m: float = 0.2
     ground_quantile: float = 0.3
     min_points: int = 3
+    z_band_m: float = 0.5
     keep_ratio: float = 0.5
 
 
 def object_points(points_box: np.ndarray, size: np.ndarray, params: BoxSnapParams) -> np.ndarray:
     """(m, 2) x, y (box frame, m) of the points of `points_box` (n, 3) that may belong to the object:
-    higher than min_height_m above the local ground and not above the box top (size = [l, w, h])."""
+    higher than min_height_m above the local ground and not above the box top (size = [l, w, h]). Only
+    points within z_band_m of the box's height span count, ground included: a canopy or a wall above a
+    cone must not be taken for its ground."""
     points = np.asarray(points_box, dtype=np.float64).reshape(-1, 3)
+    points = points[np.abs(points[:, 2]) <= float(size[2]) / 2.0 + params.z_band_m]
     if len(points) == 0:
         return np.zeros((0, 2))
     ground = float(np.quantile(points[:, 2], params.ground_quantile))

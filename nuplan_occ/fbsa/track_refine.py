@@ -46,7 +46,8 @@ class TrackRefineParams:
     frames); weight_per_point: weight of an ICP-corrected frame in the smoothing is 1 + this * its points
     (at most 400), an uncorrected frame weighs 1. snap_max_size_m / snap_radius_m / snap_min_height_m:
     a static track whose box footprint is at most snap_max_size_m is moved in x, y (up to snap_radius_m)
-    onto its points higher than snap_min_height_m above the ground (fbsa.box_snap; 0 radius: off)."""
+    onto its points higher than snap_min_height_m above the ground (fbsa.box_snap; 0 radius: off), unless
+    its box already holds snap_keep_ratio of the best shift's point count (BoxSnapParams.keep_ratio)."""
 
     rounds: int = 3
     icp_iterations: int = 8
@@ -66,6 +67,7 @@ class TrackRefineParams:
     snap_max_size_m: float = 1.0
     snap_radius_m: float = 0.5
     snap_min_height_m: float = 0.2
+    snap_keep_ratio: float = 0.5
 
 
 def apply_correction(points_box: np.ndarray, correction: np.ndarray) -> np.ndarray:

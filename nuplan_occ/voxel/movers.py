@@ -5,10 +5,11 @@ and leaves no trail where it was.
 
 A mover has no box, so its class is read from its size: each cluster of its voxels (voxels at most
 `gap_voxels` apart join one cluster, as parts of the object may have stayed in the background) is a
-vehicle when its footprint spans at least `vehicle_extent_m` along x or y (cars, vans, trucks and buses
-seen from any side), else `other` (unclassified: a small flagged cluster is as often static structure
-seen at a grazing angle as a small mover); clusters of fewer than `min_voxels` voxels are LiDAR noise
-and are not painted. Instance ids and flow stay 0 (unknown without a track).
+vehicle when its footprint spans at least `vehicle_extent_m` along x or y (a car seen side-on, a truck
+or bus from any side: longer than any bicycle), else `other` (unclassified: a small flagged cluster may
+be a cyclist, a pedestrian, a car seen from behind or static structure seen at a grazing angle);
+clusters of fewer than `min_voxels` voxels are LiDAR noise and are not painted. Instance ids and flow
+stay 0 (unknown without a track).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ class MoverVoxels:
 
 
 def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxels: int = 2,
-                 vehicle_extent_m: float = 1.5, gap_voxels: int = 1) -> MoverVoxels:
+                 vehicle_extent_m: float = 2.5, gap_voxels: int = 1) -> MoverVoxels:
     """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc)."""
     idx, inside = grid.point_to_index(points_ego)
     idx = np.unique(idx[inside], axis=0)

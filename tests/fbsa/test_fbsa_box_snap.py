@@ -42,3 +42,15 @@ def test_shift_is_bounded_by_the_radius():
     far = cone_scene(np.array([0.7, 0.0]), rng)  # reachable only in part: the box moves as far as allowed
     shift = snap_shift(far, np.array([0.3, 0.3, 0.5]), BoxSnapParams(radius_m=0.5))
     assert 0.4 <= np.linalg.norm(shift) <= 0.5 + 1e-9 and shift[0] > 0.4
+
+
+def test_a_canopy_above_is_not_taken_for_the_ground():
+    """A tree crown 3 m up over one side of a box holding its cone: more canopy points than ground points
+    near the box must not make the canopy the 'ground' and pull the box under the crown."""
+    rng = np.random.default_rng(3)
+    scene = cone_scene(np.array([0.0, 0.0]), rng)
+    canopy = np.column_stack([rng.uniform(-1.2, 1.2, 12000), rng.uniform(0.3, 1.2, 12000), rng.uniform(2.8, 3.4, 12000)])
+    shift = snap_shift(np.vstack([scene, canopy]), np.array([0.3, 0.3, 0.5]))
+    assert np.all(np.abs(shift) <= 0.1), shift
+    unbanded = snap_shift(np.vstack([scene, canopy]), np.array([0.3, 0.3, 0.5]), BoxSnapParams(z_band_m=10.0))
+    assert np.abs(unbanded).max() > 0.2  # without the height band the crown wins
