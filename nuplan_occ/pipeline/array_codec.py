@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import io
 import pickle
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -67,8 +67,19 @@ class _ArrayPickler(pickle.Pickler):
         return NotImplemented
 
 
+def dump(obj: Any, file: BinaryIO) -> None:
+    """Write pickle protocol 5 of obj, its numeric arrays encoded compactly, to `file` (pickle.load reads it).
+
+    Without a memo: neither the pickler nor the unpickler then holds every encoded array until the end, so
+    writing or reading an entry costs about one array beyond the objects themselves. An object reached
+    twice is stored twice (and read back as two equal objects); obj must not contain itself."""
+    pickler = _ArrayPickler(file, protocol=5)
+    pickler.fast = True
+    pickler.dump(obj)
+
+
 def dumps(obj: Any) -> bytes:
-    """Pickle protocol 5 of obj with its numeric arrays encoded compactly (pickle.loads reads it back)."""
+    """`dump` into bytes."""
     buffer = io.BytesIO()
-    _ArrayPickler(buffer, protocol=5).dump(obj)
+    dump(obj, buffer)
     return buffer.getvalue()

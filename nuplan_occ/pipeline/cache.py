@@ -9,15 +9,17 @@ only what depends on it.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import pickle
 import tempfile
+from contextlib import contextmanager
 
 import zstandard
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, Iterator
 
 from nuplan_occ.pipeline import array_codec
 
@@ -38,19 +40,25 @@ def stable_hash(*parts: Any) -> str:
     return hashlib.sha256(json.dumps(encode(parts), sort_keys=True, default=str).encode()).hexdigest()
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write bytes to `path` via a temp file in the same folder and an atomic rename."""
+@contextmanager
+def atomic_file(path: Path) -> Iterator[BinaryIO]:
+    """A file handle whose content appears at `path` only when the block ends without error (temp file
+    in the same folder, fsync, atomic rename); on error nothing is left behind."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
+            yield handle
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+STREAM_BUFFER_BYTES = 1 << 20
+"""Buffer between the pickler and zstd: pickle writes many small pieces."""
 
 
 class StageCache:
@@ -66,11 +74,16 @@ class StageCache:
         """The stored outputs, or None when absent (a damaged entry counts as absent)."""
         path = self._path(stage, key)
         try:
-            return pickle.loads(zstandard.ZstdDecompressor().decompress(path.read_bytes()))
+            with open(path, "rb") as handle, zstandard.ZstdDecompressor().stream_reader(handle) as raw:
+                return pickle.load(io.BufferedReader(raw, STREAM_BUFFER_BYTES))
         except (FileNotFoundError, pickle.UnpicklingError, zstandard.ZstdError, EOFError, AttributeError, ImportError):
             return None  # absent, or removed by another build's work-folder policy, or damaged
 
     def put(self, stage: str, key: str, outputs: dict[str, Any]) -> None:
-        """Store outputs atomically."""
-        payload = zstandard.ZstdCompressor(level=CACHE_ZSTD_LEVEL).compress(array_codec.dumps(outputs))
-        atomic_write_bytes(self._path(stage, key), payload)
+        """Store outputs atomically, pickled straight into the zstd stream (an entry of several GB is never
+        held in memory as a whole, pickled or compressed)."""
+        with atomic_file(self._path(stage, key)) as handle:
+            with zstandard.ZstdCompressor(level=CACHE_ZSTD_LEVEL).stream_writer(handle, closefd=False) as raw:
+                buffered = io.BufferedWriter(raw, STREAM_BUFFER_BYTES)
+                array_codec.dump(outputs, buffered)
+                buffered.flush()
