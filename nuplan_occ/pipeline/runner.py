@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from nuplan_occ.pipeline.cache import StageCache, stable_hash
+from nuplan_occ.pipeline.memory import release_free_memory
 from nuplan_occ.pipeline.publish import failed_scene_rows, publish_scene, row_counts
 from nuplan_occ.pipeline.scene import SceneTask, source_fingerprint
 
@@ -91,6 +92,7 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
         for name in {n for s in pipeline if group[s.name] == stage.name for n in s.inputs}:
             if name not in wanted and readers[name] <= done:
                 artifacts.pop(name, None)
+        release_free_memory()
 
     def obtain(name: str) -> Any:
         if name not in artifacts:
