@@ -64,16 +64,19 @@ MOVER_CELL_M = 0.05
 """Cell of the unboxed-mover lookup when the aggregate is not downsampled (m)."""
 
 
-def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray, frame_points: dict[int, np.ndarray],
-                    voxel_m: float) -> dict[int, np.ndarray]:
-    """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_points,
-    scene frame) in a downsampling cell of voxel_m whose kept point was removed as dynamic: the sweep's
-    unboxed movers, voxelized in that frame only (nuplan_occ.voxel.movers). The cell decides rather than the
-    kept point itself, since a cell keeps the earliest frame's point and a mover covers cells it had
-    crossed before."""
+def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray, frame_clouds: dict[int, np.ndarray],
+                    T_scene_from_ego: dict[int, np.ndarray], voxel_m: float) -> dict[int, np.ndarray]:
+    """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_clouds,
+    its ego frame, placed by T_scene_from_ego) in a downsampling cell of voxel_m whose kept point was removed
+    as dynamic: the sweep's unboxed movers, voxelized in that frame only (nuplan_occ.voxel.movers). The cell
+    decides rather than the kept point itself, since a cell keeps the earliest frame's point and a mover
+    covers cells it had crossed before. One sweep is moved into the scene frame at a time."""
     flagged = np.unique(voxel_keys(background.points[dynamic], voxel_m))
-    return {position: points[np.isin(voxel_keys(points, voxel_m), flagged)].astype(np.float32)
-            for position, points in frame_points.items()}
+    movers = {}
+    for position, cloud in frame_clouds.items():
+        points = transform_points(T_scene_from_ego[position], cloud)
+        movers[position] = points[np.isin(voxel_keys(points, voxel_m), flagged)].astype(np.float32)
+    return movers
 
 
 def run(inputs: dict, params: AggregateParams) -> dict:
@@ -105,9 +108,11 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                ground_clearance_m=params.dynamic_ground_clearance_m,
                                protect_dilation=params.dynamic_protect_dilation,
                                occupied_ratio=params.dynamic_occupied_ratio)
+        cloud_of = dict(zip(ok, clouds))
         scene_from_global = invert_transform(background.T_global_from_scene)
-        frame_points = {p: transform_points(scene_from_global @ poses[p], clouds[ok.index(p)]) for p in outputs}
-        frame_movers = movers_by_frame(background, dynamic, frame_points, params.voxel_downsample_m or MOVER_CELL_M)
+        frame_movers = movers_by_frame(background, dynamic, {p: cloud_of[p] for p in outputs},
+                                       {p: scene_from_global @ poses[p] for p in outputs},
+                                       params.voxel_downsample_m or MOVER_CELL_M)
         background = BackgroundAggregate(background.points[~dynamic], background.sensor_origins[~dynamic],
                                          background.frame_ids[~dynamic], background.T_global_from_scene)
     objects = aggregate_objects([inputs["object_points"][i] for i in ok], [inputs["object_boxes"][i] for i in ok],

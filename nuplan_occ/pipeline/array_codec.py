@@ -4,7 +4,7 @@ A numeric array of at least `MIN_CODED_BYTES` is pickled as its bytes regrouped 
 shuffle, as Blosc does), column by column for a 2-D array, in the narrowest dtype that holds every value
 exactly (float64 -> float32, int64 -> int32 / int16 when nothing changes). zstd then finds the runs
 that interleaved float and index bytes hide. Decoding restores the original dtype, shape and values bit
-for bit. Measured on a 5 s city scene's reconstruct entry: bench/report-manifest.md.
+for bit. Bytes per entry, coded and not: the notes of bench/report-scale.md.
 """
 
 from __future__ import annotations

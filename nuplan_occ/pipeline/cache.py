@@ -24,7 +24,7 @@ from typing import Any, BinaryIO, Iterator
 from nuplan_occ.pipeline import array_codec
 
 CACHE_ZSTD_LEVEL = 3
-"""zstd level of cache entries (bytes and seconds per level: bench/report-manifest.md)."""
+"""zstd level of cache entries (bytes and seconds per level: the notes of bench/report-scale.md)."""
 
 def stable_hash(*parts: Any) -> str:
     """sha256 hex of JSON-serialisable parts (dataclasses are turned into dicts)."""

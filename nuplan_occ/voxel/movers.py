@@ -48,13 +48,10 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
     clusters, count = ndimage.label(occupied, structure=neighbourhood)
     cluster_of = clusters[tuple(local.T)] - 1
     sizes = np.bincount(cluster_of, minlength=count)
-    span = np.zeros((count, 2))
-    for axis in (0, 1):
-        high = np.full(count, -1, np.int64)
-        lowest = np.full(count, np.iinfo(np.int64).max)
-        np.maximum.at(high, cluster_of, local[:, axis])
-        np.minimum.at(lowest, cluster_of, local[:, axis])
-        span[:, axis] = (high - lowest + 1) * grid.voxel_size
+    own = np.zeros_like(clusters)
+    own[tuple(local.T)] = cluster_of + 1  # each cluster's extent over its own voxels, not the dilation
+    span = np.array([[(box[axis].stop - box[axis].start) * grid.voxel_size for axis in (0, 1)]
+                     for box in ndimage.find_objects(own, max_label=count)])
     cluster_class = np.where(span.max(axis=1) >= vehicle_extent_m, VEHICLE, OTHER).astype(np.uint8)
     keep = sizes[cluster_of] >= min_voxels
     return MoverVoxels(idx[keep], cluster_class[cluster_of[keep]])
