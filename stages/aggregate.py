@@ -15,6 +15,7 @@ removed points as dynamic).
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,19 +65,44 @@ MOVER_CELL_M = 0.05
 """Cell of the unboxed-mover lookup when the aggregate is not downsampled (m)."""
 
 
-def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray, frame_clouds: dict[int, np.ndarray],
+def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray, frame_clouds: Iterable[tuple[int, np.ndarray]],
                     T_scene_from_ego: dict[int, np.ndarray], voxel_m: float) -> dict[int, np.ndarray]:
-    """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_clouds,
-    its ego frame, placed by T_scene_from_ego) in a downsampling cell of voxel_m whose kept point was removed
-    as dynamic: the sweep's unboxed movers, voxelized in that frame only (nuplan_occ.voxel.movers). The cell
-    decides rather than the kept point itself, since a cell keeps the earliest frame's point and a mover
-    covers cells it had crossed before. One sweep is moved into the scene frame at a time."""
+    """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_clouds:
+    (position, points in its ego frame), placed by T_scene_from_ego) in a downsampling cell of voxel_m whose
+    kept point was removed as dynamic: the sweep's unboxed movers, voxelized in that frame only
+    (nuplan_occ.voxel.movers). The cell decides rather than the kept point itself, since a cell keeps the
+    earliest frame's point and a mover covers cells it had crossed before. One sweep is moved into the
+    scene frame at a time."""
     flagged = np.unique(voxel_keys(background.points[dynamic], voxel_m))
     movers = {}
-    for position, cloud in frame_clouds.items():
+    for position, cloud in frame_clouds:
         points = transform_points(T_scene_from_ego[position], cloud)
         movers[position] = points[np.isin(voxel_keys(points, voxel_m), flagged)].astype(np.float32)
     return movers
+
+
+class ClearedClouds(Sequence):
+    """The background clouds of sweeps `positions` (ego frame) without the points near their objects'
+    corrected boxes (object_clearance_m < 0: as they are), made when asked for, so that a scene never holds
+    a second copy of every sweep's background."""
+
+    def __init__(self, background: list, object_boxes: list, positions: list[int], params: AggregateParams):
+        self._background, self._boxes, self._positions, self._params = background, object_boxes, positions, params
+
+    def __len__(self) -> int:
+        return len(self._positions)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[j] for j in range(*k.indices(len(self)))]
+        return self.of(self._positions[k])
+
+    def of(self, position: int) -> np.ndarray:
+        """The cleared background of the sweep at `position` (scene order)."""
+        cloud, params = self._background[position], self._params
+        if params.object_clearance_m < 0:
+            return cloud
+        return cloud[outside_boxes(cloud, self._boxes[position], params.object_clearance_m, params.ground_keep_m)]
 
 
 def run(inputs: dict, params: AggregateParams) -> dict:
@@ -87,10 +113,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     crop = None
     if params.crop_margin_m >= 0 and outputs:
         crop = (poses[outputs], DEFAULT_GRID.lower - params.crop_margin_m, DEFAULT_GRID.upper + params.crop_margin_m)
-    clouds = [inputs["background"][i] for i in ok]
-    if params.object_clearance_m >= 0:
-        clouds = [cloud[outside_boxes(cloud, inputs["object_boxes"][i], params.object_clearance_m,
-                                      params.ground_keep_m)] for cloud, i in zip(clouds, ok)]
+    clouds = ClearedClouds(inputs["background"], inputs["object_boxes"], ok, params)
     background = aggregate_background(
         clouds,
         np.repeat(scene.sensor_origin_ego[None], len(ok), axis=0),
@@ -108,9 +131,8 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                ground_clearance_m=params.dynamic_ground_clearance_m,
                                protect_dilation=params.dynamic_protect_dilation,
                                occupied_ratio=params.dynamic_occupied_ratio)
-        cloud_of = dict(zip(ok, clouds))
         scene_from_global = invert_transform(background.T_global_from_scene)
-        frame_movers = movers_by_frame(background, dynamic, {p: cloud_of[p] for p in outputs},
+        frame_movers = movers_by_frame(background, dynamic, ((p, clouds.of(p)) for p in outputs),
                                        {p: scene_from_global @ poses[p] for p in outputs},
                                        params.voxel_downsample_m or MOVER_CELL_M)
         background = BackgroundAggregate(background.points[~dynamic], background.sensor_origins[~dynamic],

@@ -8,6 +8,7 @@ default the first frame's ego pose), "box" (origin at the box centre, x along th
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,7 +61,7 @@ def within_boxes(points: np.ndarray, T_box_from_points: np.ndarray, lower: np.nd
 
 
 def aggregate_background(
-    clouds_ego: list[np.ndarray],
+    clouds_ego: Sequence[np.ndarray],
     sensor_origins_ego: np.ndarray,
     poses: np.ndarray,
     T_global_from_scene: np.ndarray | None = None,
@@ -69,10 +70,10 @@ def aggregate_background(
 ) -> BackgroundAggregate:
     """Background points of all frames in the scene frame.
 
-    clouds_ego: F arrays (n_i, 3), frame i's background in its ego frame; sensor_origins_ego (F, 3): frame i's
-    sensor origin in its ego frame; poses (F, 4, 4): T_global_from_ego (refined). crop = (crop_poses (K, 4, 4)
-    T_global_from_ego, lower (3,), upper (3,) m): if set, keep only the points inside [lower, upper) of the ego
-    frame of at least one crop pose (e.g. the output frames' grids plus a margin), before any downsampling.
+    clouds_ego: F arrays (n_i, 3), frame i's background in its ego frame (any sequence: each is read once);
+    sensor_origins_ego (F, 3): frame i's sensor origin in its ego frame; poses (F, 4, 4): T_global_from_ego
+    (refined). crop = (crop_poses (K, 4, 4) T_global_from_ego, lower (3,), upper (3,) m): if set, keep only
+    the points inside [lower, upper) of the ego frame of at least one crop pose (e.g. the output frames' grids plus a margin), before any downsampling.
     voxel_downsample_m: if set, keep only the first point (earliest frame) of every voxel of that size, with its
     own sensor origin and frame id; applied as the aggregate is built (every AGGREGATE_CHUNK_FRAMES frames), so
     memory follows the downsampled aggregate, not the raw points of the scene.

@@ -109,7 +109,7 @@ class Boxes:
 
 @dataclass
 class PointCloud:
-    """One LiDAR sweep. xyz (N, 3) float64 metres in `frame`; intensity (N,) float32; ring (N,) int16;
+    """One LiDAR sweep. xyz (N, 3) metres in `frame` (float64 as read; float32 for a scene's ego-frame sweeps); intensity (N,) float32; ring (N,) int16;
     lidar_info (N,) int8 in 0..4 (see LIDAR_NAMES), -1 where unknown."""
 
     xyz: np.ndarray

@@ -79,7 +79,7 @@ class Sweep:
     """One 20 Hz merged LiDAR sweep of the scene.
 
     logged_pose: T_global_from_ego (4, 4) at the sweep's timestamp, from the log.
-    cloud: points in the EGO frame of this sweep (None when the sweep failed to load: see failure).
+    cloud: points in the EGO frame of this sweep, xyz float32 (None when the sweep failed to load: see failure).
     boxes: the sweep's boxes in its ego frame (logged pose); boxes_global as stored.
     is_output: True for the sweeps written to the dataset (the output rate, e.g. every other sweep).
     output_index: an output sweep's index among its scene's output frames (the manifest's `output_index`,
