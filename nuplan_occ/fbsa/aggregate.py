@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.box_kernels import inside_any_frame_box
 from nuplan_occ.fbsa.voxel_reduce import first_of_each_key, voxel_keys
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.io.types import Boxes
@@ -40,24 +41,18 @@ def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
 def within_boxes(points: np.ndarray, T_box_from_points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """(N,) bool: whether each point (N, 3) lies in [lower, upper) (3,) m of at least one of the K axis-aligned
     boxes, box k being given in its own frame with T_box_from_points (K, 4, 4) from the points' frame.
-    Boxes are tried nearest first, each only on the points no nearer box holds, and the search stops at the
-    first box too far from the points' frame to hold any of them (same answer as trying every box)."""
+    Compiled (fbsa.box_kernels): boxes are tried nearest first, and a point stops at the first box that holds
+    it or is too far from it to (same answer as trying every box)."""
     Ts = np.asarray(T_box_from_points, dtype=np.float64).reshape(-1, 4, 4)
     keep = np.zeros(len(points), dtype=bool)
     if not len(points) or not len(Ts):
         return keep
     reach = float(np.linalg.norm(np.maximum(np.abs(lower), np.abs(upper))))  # farthest box point from its centre
     centre_distance = np.linalg.norm(Ts[:, :3, 3], axis=1)  # distance from the box centre to the points' origin
-    radius = float(np.sqrt((points ** 2).sum(axis=1).max()))
-    for k in np.argsort(centre_distance, kind="stable"):
-        if centre_distance[k] > radius + reach:
-            break
-        rest = np.flatnonzero(~keep)
-        if not len(rest):
-            break
-        local = transform_points(Ts[k], points[rest])
-        keep[rest[np.all((local >= lower) & (local < upper), axis=1)]] = True
-    return keep
+    order = np.argsort(centre_distance, kind="stable")
+    return inside_any_frame_box(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(Ts[order]),
+                                centre_distance[order], np.asarray(lower, np.float64), np.asarray(upper, np.float64),
+                                reach)
 
 
 def aggregate_background(

@@ -80,16 +80,22 @@ count against removal, weighted by occupied_ratio (0 = not at all)."""
     if not len(points):
         return remove
     candidates = np.flatnonzero(height_above_ground(points, ground_cell_m) > ground_clearance_m)
+    candidates = candidates[np.argsort(points[candidates, 0], kind="stable")]  # by scene x: a sweep reads a slice
+    xs, ys = points[candidates, 0], points[candidates, 1]
+    reach = float(np.linalg.norm(np.maximum(np.abs(grid.lower), np.abs(grid.upper))))  # grid corner from the ego
     free = np.zeros(len(candidates), dtype=np.int32)
     near_returns = np.zeros(len(candidates), dtype=np.int32)
     shape = np.array(grid.shape)
     for cloud, T_f in zip(sweeps_ego, T):
         obs = lidar_observation(cloud, origin_ego, grid)
         blocked = dilate(obs == OCCUPIED, protect_dilation) if protect_dilation > 0 else obs == OCCUPIED
-        idx, inside = grid.point_to_index(transform_points(invert_transform(T_f), points[candidates]))
+        ego_x, ego_y = T_f[0, 3], T_f[1, 3]  # only points within reach of the sweep's ego can be in its grid
+        first, last = np.searchsorted(xs, ego_x - reach, "left"), np.searchsorted(xs, ego_x + reach, "right")
+        around = first + np.flatnonzero(np.abs(ys[first:last] - ego_y) <= reach)
+        idx, inside = grid.point_to_index(transform_points(invert_transform(T_f), points[candidates[around]]))
         flat = (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2]
         near = inside & blocked.ravel()[flat]
-        near_returns += near
-        free += inside & (obs.ravel()[flat] == FREE) & ~near
+        near_returns[around] += near
+        free[around] += inside & (obs.ravel()[flat] == FREE) & ~near
     remove[candidates[(free >= min_votes) & (free > occupied_ratio * near_returns)]] = True
     return remove

@@ -12,14 +12,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
+from nuplan_occ.fbsa.box_kernels import first_upright_box
 from nuplan_occ.geometry import transform_points
 from nuplan_occ.io.types import PACIFICA, Boxes, PointCloud, VehicleFootprint
 
 FACE_TOLERANCE_M = 1e-6
 """Points within this distance outside a (scaled) box face still count as inside: faces are inclusive."""
-
-_CHUNK_ELEMENTS = 1 << 21
-"""Points x boxes evaluated per vectorized block (bounds the temporaries to a few tens of MB)."""
 
 
 def _as_points(points: np.ndarray, name: str) -> np.ndarray:
@@ -35,7 +33,7 @@ def points_in_boxes(points: np.ndarray, boxes: Boxes, scale: float = 1.0, pad_m:
     points (N, 3) m in `boxes.frame`. A box's half-extents are sizes / 2 * scale + pad_m (pad_m: metres added on
     every side after scaling). Faces are inclusive (FACE_TOLERANCE_M). Boxes are upright (yaw only).
     Returns (N,) int64: the lowest index of a box containing the point, -1 if none.
-    Vectorized over blocks of points x boxes; a box's bounding rectangle prefilters the points of each block.
+    Compiled (fbsa.box_kernels): each point tries the boxes in order, bounding rectangle first.
     """
     pts = _as_points(points, "points")
     out = np.full(len(pts), -1, dtype=np.int64)
@@ -49,27 +47,7 @@ def points_in_boxes(points: np.ndarray, boxes: Boxes, scale: float = 1.0, pad_m:
     ext_y = np.abs(sin) * half[:, 0] + np.abs(cos) * half[:, 1]
     lo = np.stack([centers[:, 0] - ext_x, centers[:, 1] - ext_y, centers[:, 2] - half[:, 2]], axis=1)
     hi = np.stack([centers[:, 0] + ext_x, centers[:, 1] + ext_y, centers[:, 2] + half[:, 2]], axis=1)
-    near = np.all((pts >= lo.min(axis=0)) & (pts <= hi.max(axis=0)), axis=1)
-    candidates = np.flatnonzero(near)
-    if len(candidates) == 0:
-        return out
-    per_block = max(1, _CHUNK_ELEMENTS // max(1, len(boxes)))
-    for start in range(0, len(candidates), per_block):
-        idx = candidates[start:start + per_block]
-        p = pts[idx]
-        in_rect = np.all((p[:, None, :] >= lo[None]) & (p[:, None, :] <= hi[None]), axis=2)  # (n, K)
-        rows, ks = np.nonzero(in_rect)
-        if len(rows) == 0:
-            continue
-        d = p[rows] - centers[ks]
-        local_x = cos[ks] * d[:, 0] + sin[ks] * d[:, 1]
-        local_y = -sin[ks] * d[:, 0] + cos[ks] * d[:, 1]
-        inside = (np.abs(local_x) <= half[ks, 0]) & (np.abs(local_y) <= half[ks, 1]) & (np.abs(d[:, 2]) <= half[ks, 2])
-        rows, ks = rows[inside], ks[inside]
-        # np.nonzero is row-major, so the first hit of each row is its lowest box index.
-        first_rows, first = np.unique(rows, return_index=True)
-        out[idx[first_rows]] = ks[first]
-    return out
+    return first_upright_box(pts, centers, half, cos, sin, lo, hi)
 
 
 @dataclass
