@@ -157,6 +157,6 @@ STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "objec
               outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers"),
               params_type=AggregateParams,
               run=run,
-              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic",
-                    "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.voxel_reduce",
+              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.box_kernels", "nuplan_occ.fbsa.carve",
+                    "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.voxel_reduce",
                     "nuplan_occ.voxel.visibility", "nuplan_occ.voxel.traversal"), doc=__doc__ or "")

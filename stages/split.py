@@ -33,4 +33,4 @@ def run(inputs: dict, params: SplitParams) -> dict:
 
 
 STAGE = Stage("split", inputs=("scene",), outputs=("splits",), params_type=SplitParams, run=run,
-              code=("nuplan_occ.fbsa.split",), doc=__doc__ or "")
+              code=("nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_kernels"), doc=__doc__ or "")

@@ -23,6 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from nuplan_occ.fbsa.box_kernels import within_square
 from nuplan_occ.fbsa.box_snap import BoxSnapParams, snap_shift
 from nuplan_occ.fbsa.split import foreground_by_track, points_in_boxes
 from nuplan_occ.fbsa.track_refine import TrackRefineParams, corrected_box, refine_track, smooth_track_poses
@@ -75,7 +76,7 @@ def snapped_static_pose(scene, poses: np.ndarray, positions: list[int], pose: np
     for i in positions:
         xyz = scene.sweeps[i].cloud.xyz
         center_ego = transform_points(invert_transform(poses[i]), pose[None, :3])[0]
-        near = np.max(np.abs(xyz[:, :2] - center_ego[:2]), axis=1) <= reach
+        near = within_square(xyz, float(center_ego[0]), float(center_ego[1]), reach)
         gathered.append((transform_points(poses[i], xyz[near]) - pose[:3]) @ R)
     shift = snap_shift(np.vstack(gathered), size, params)
     snapped = np.array(pose, dtype=np.float64)
@@ -126,6 +127,6 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
 
 STAGE = Stage("track", inputs=("scene", "registration"), outputs=("object_boxes", "object_points", "track_corrections"),
               params_type=TrackRefineParams, run=run,
-              code=("nuplan_occ.fbsa.track_refine", "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_snap",
-                    "nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.voxel_reduce"),
+              code=("nuplan_occ.fbsa.track_refine", "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_kernels",
+                    "nuplan_occ.fbsa.box_snap", "nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.voxel_reduce"),
               doc=__doc__ or "")

@@ -57,3 +57,16 @@ def inside_any_frame_box(points: np.ndarray, T_box_from_points: np.ndarray, cent
                 keep[i] = True
                 break
     return keep
+
+
+@numba.njit(cache=True)
+def within_square(points: np.ndarray, center_x: float, center_y: float, half: float) -> np.ndarray:
+    """(M,) int64 indices of the points (N, 3) whose x and y both lie within half of (center_x, center_y)
+    (an axis-aligned square, edges inclusive; z ignored), in input order."""
+    hits = np.empty(len(points), np.int64)
+    m = 0
+    for i in range(len(points)):
+        if abs(np.float64(points[i, 0]) - center_x) <= half and abs(np.float64(points[i, 1]) - center_y) <= half:
+            hits[m] = i
+            m += 1
+    return hits[:m]
