@@ -65,8 +65,9 @@ MOVER_CELL_M = 0.05
 """Cell of the unboxed-mover lookup when the aggregate is not downsampled (m)."""
 
 
-def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray, frame_clouds: Iterable[tuple[int, np.ndarray]],
-                    T_scene_from_ego: dict[int, np.ndarray], voxel_m: float) -> dict[int, np.ndarray]:
+def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray,
+                    frame_clouds: Iterable[tuple[int, np.ndarray]], T_scene_from_ego: dict[int, np.ndarray],
+                    voxel_m: float) -> dict[int, np.ndarray]:
     """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_clouds:
     (position, points in its ego frame), placed by T_scene_from_ego) in a downsampling cell of voxel_m whose
     kept point was removed as dynamic: the sweep's unboxed movers, voxelized in that frame only
@@ -84,7 +85,8 @@ def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray, frame_
 class ClearedClouds(Sequence):
     """The background clouds of sweeps `positions` (ego frame) without the points near their objects'
     corrected boxes (object_clearance_m < 0: as they are), made when asked for, so that a scene never holds
-    a second copy of every sweep's background."""
+    a second copy of every sweep's background (an output sweep is cleared twice: for the aggregate and for
+    its movers; the compiled box test makes that cheaper than holding the copies)."""
 
     def __init__(self, background: list, object_boxes: list, positions: list[int], params: AggregateParams):
         self._background, self._boxes, self._positions, self._params = background, object_boxes, positions, params
@@ -158,5 +160,6 @@ STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "objec
               params_type=AggregateParams,
               run=run,
               code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.box_kernels", "nuplan_occ.fbsa.carve",
-                    "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split", "nuplan_occ.fbsa.voxel_reduce",
+                    "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split",
+                    "nuplan_occ.fbsa.voxel_reduce",
                     "nuplan_occ.voxel.visibility", "nuplan_occ.voxel.traversal"), doc=__doc__ or "")

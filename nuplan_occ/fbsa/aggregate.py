@@ -44,9 +44,8 @@ def within_boxes(points: np.ndarray, T_box_from_points: np.ndarray, lower: np.nd
     Compiled (fbsa.box_kernels): boxes are tried nearest first, and a point stops at the first box that holds
     it or is too far from it to (same answer as trying every box)."""
     Ts = np.asarray(T_box_from_points, dtype=np.float64).reshape(-1, 4, 4)
-    keep = np.zeros(len(points), dtype=bool)
     if not len(points) or not len(Ts):
-        return keep
+        return np.zeros(len(points), dtype=bool)
     reach = float(np.linalg.norm(np.maximum(np.abs(lower), np.abs(upper))))  # farthest box point from its centre
     centre_distance = np.linalg.norm(Ts[:, :3, 3], axis=1)  # distance from the box centre to the points' origin
     order = np.argsort(centre_distance, kind="stable")
@@ -68,7 +67,8 @@ def aggregate_background(
     clouds_ego: F arrays (n_i, 3), frame i's background in its ego frame (any sequence: each is read once);
     sensor_origins_ego (F, 3): frame i's sensor origin in its ego frame; poses (F, 4, 4): T_global_from_ego
     (refined). crop = (crop_poses (K, 4, 4) T_global_from_ego, lower (3,), upper (3,) m): if set, keep only
-    the points inside [lower, upper) of the ego frame of at least one crop pose (e.g. the output frames' grids plus a margin), before any downsampling.
+    the points inside [lower, upper) of the ego frame of at least one crop pose (e.g. the output frames' grids
+    plus a margin), before any downsampling.
     voxel_downsample_m: if set, keep only the first point (earliest frame) of every voxel of that size, with its
     own sensor origin and frame id; applied as the aggregate is built (every AGGREGATE_CHUNK_FRAMES frames), so
     memory follows the downsampled aggregate, not the raw points of the scene.

@@ -109,8 +109,9 @@ class Boxes:
 
 @dataclass
 class PointCloud:
-    """One LiDAR sweep. xyz (N, 3) metres in `frame` (float64 as read; float32 for a scene's ego-frame sweeps); intensity (N,) float32; ring (N,) int16;
-    lidar_info (N,) int8 in 0..4 (see LIDAR_NAMES), -1 where unknown."""
+    """One LiDAR sweep. xyz (N, 3) metres in `frame` (float64 as read; float32 for a scene's ego-frame
+    sweeps); intensity (N,) float32; ring (N,) int16; lidar_info (N,) int8 in 0..4 (see LIDAR_NAMES), -1
+    where unknown."""
 
     xyz: np.ndarray
     intensity: np.ndarray

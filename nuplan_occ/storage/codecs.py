@@ -130,7 +130,8 @@ def _zstd_frame(raw: bytes, level: int) -> bytes:
     """One zstd frame of `raw` with its content size, produced through the streaming API in small output
     chunks: the one-shot API allocates a compress-bound output (the payload's size) per member and shrinks
     it in place, which left the heap fragmented by ~5 MB per member and frame (scale-report notes)."""
-    stream = zstandard.ZstdCompressor(level=level, write_content_size=True, write_checksum=False).compressobj(size=len(raw))
+    compressor = zstandard.ZstdCompressor(level=level, write_content_size=True, write_checksum=False)
+    stream = compressor.compressobj(size=len(raw))
     return stream.compress(raw) + stream.flush()
 
 
