@@ -153,7 +153,7 @@ def bench_quality(data_root: Path, out: Path, frame_stride: int = 1) -> dict[str
             center = artifacts["registration"].poses[0][:2, 3]
             layers = NuplanMap(scene.map_path).layers_in_window(center, 150.0, LABEL_LAYERS)
         position_of = {s.token: i for i, s in enumerate(scene.sweeps)}
-        tokens = [s.token for s in scene.sweeps if s.is_output and s.cloud is not None][::max(1, frame_stride)]
+        tokens = [s.token for s in scene.sweeps if s.is_output and s.has_cloud][::max(1, frame_stride)]
         for token in tokens:
             frame = built.get(built.index_of_token(token), keys=("semantics", "instance"))
             semantics, objects = frame["semantics"], frame["instance"] > 0

@@ -168,16 +168,19 @@ def code_label(repo: Path) -> str:
 def run_scale_bench(out_dir: Path, seconds: list[float], baseline: str | None, limit_mb: float,
                     quality_stride: int, baseline_max_seconds: float) -> dict[str, Any]:
     """Every scene length built by this code (and by `baseline` up to baseline_max_seconds); the report.
-    Rows of other code versions already in bench/report-scale.json are kept (each row has its date)."""
+    Rows of other code versions already in bench/report-scale.json are kept (each row has its date), and so
+    are its notes and its KISS-ICP measurement (a run that skips it keeps the last one)."""
     cache = out_dir / "scale"
     cache.mkdir(parents=True, exist_ok=True)
     here = Path(__file__).resolve().parents[1]
     this = code_label(here)
     previous = out_dir / "report-scale.json"
-    kept = [r for r in json.loads(previous.read_text())["runs"] if r["code"] != this] if previous.exists() else []
+    earlier = json.loads(previous.read_text()) if previous.exists() else {"runs": []}
+    kept = [r for r in earlier["runs"] if r["code"] != this]
     report: dict[str, Any] = {"software": f"nuplan-occ {__version__}", "machine": platform.machine(),
                               "cpus": os.cpu_count(), "preset": SCALE_PRESET, "seed": BENCH_SEED,
-                              "quality_frame_stride": quality_stride, "runs": kept}
+                              "quality_frame_stride": quality_stride, "runs": kept,
+                              **{k: earlier[k] for k in ("notes", "kiss_icp") if k in earlier}}
     for length in seconds:
         data_root = scale_data(cache, length)
         builds = [(this, here)]

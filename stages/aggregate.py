@@ -128,7 +128,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     if params.remove_dynamic and ok:
         used = ok[::max(1, params.dynamic_sweep_stride)]
         T_scene_from_ego = invert_transform(background.T_global_from_scene) @ poses[used]
-        dynamic = seen_through(background.points, [scene.sweeps[i].cloud.xyz for i in used], T_scene_from_ego,
+        dynamic = seen_through(background.points, scene.points_of(used), T_scene_from_ego,
                                scene.sensor_origin_ego, min_votes=params.dynamic_min_votes,
                                ground_clearance_m=params.dynamic_ground_clearance_m,
                                protect_dilation=params.dynamic_protect_dilation,

@@ -1,7 +1,9 @@
 """Stage 0, load: read one scene of a log (sweeps in the ego frame, boxes, logged poses, calibration),
 with context sweeps of the same log around it (aggregated, not written).
 
-Inputs: the scene task. Outputs: `scene` (SceneData). Not cached: reading is cheaper than storing.
+Inputs: the scene task. Outputs: `scene` (SceneData). Not cached: reading is cheaper than storing. The
+sweeps' points are spilled to an unnamed file of the scene's work folder as they are read and read back
+per sweep by the stages (nuplan_occ.pipeline.spilled_clouds), so no stage holds the whole scene's clouds.
 A sweep whose PCD is missing or corrupt is kept with its failure reason; the scene goes on without it.
 """
 
@@ -18,6 +20,7 @@ from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.io.types import LidarFrame, PointCloud
 from nuplan_occ.io.errors import MapError
 from nuplan_occ.pipeline.scene import SceneData, Sweep, output_slots
+from nuplan_occ.pipeline.spilled_clouds import SpilledClouds
 from nuplan_occ.pipeline.stage import Stage
 
 
@@ -56,6 +59,7 @@ def compact(cloud: PointCloud) -> PointCloud:
 
 def run(inputs: dict, params: LoadParams) -> dict:
     task = inputs["task"]
+    store = SpilledClouds(task.work_dir / "load")
     with NuplanLog(task.db_path, task.sensor_root) as log:
         T_ego_from_lidar = log.lidar.T_ego_from_lidar
         sweeps = []
@@ -67,7 +71,7 @@ def run(inputs: dict, params: LoadParams) -> dict:
             boxes_ego = log.boxes(frame, "ego")
             cloud, failure = None, ""
             try:
-                cloud = compact(log.load_points(frame).transformed(T_ego_from_lidar, "ego"))
+                cloud = store.add(compact(log.load_points(frame).transformed(T_ego_from_lidar, "ego")))
             except NuplanFormatError as exc:
                 failure = str(exc)
             sweeps.append(Sweep(frame.token, frame.index, frame.timestamp_us, pose, cloud, boxes_ego,
@@ -87,4 +91,4 @@ def run(inputs: dict, params: LoadParams) -> dict:
 
 
 STAGE = Stage("load", inputs=("task",), outputs=("scene",), params_type=LoadParams, run=run,
-              code=("nuplan_occ.io.reader", "nuplan_occ.io.pcd"), cache=False, doc=__doc__ or "")
+              code=("nuplan_occ.io.reader", "nuplan_occ.io.pcd", "nuplan_occ.pipeline.spilled_clouds"), cache=False, doc=__doc__ or "")

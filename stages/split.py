@@ -24,7 +24,7 @@ class SplitParams:
 def run(inputs: dict, params: SplitParams) -> dict:
     scene = inputs["scene"]
     splits = [
-        None if sweep.cloud is None else split_frame(
+        None if not sweep.has_cloud else split_frame(
             sweep.cloud, sweep.boxes, scene.sensor_origin_ego, margin=params.box_margin,
             ego_margin_m=params.ego_margin_m)
         for sweep in scene.sweeps

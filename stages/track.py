@@ -66,21 +66,31 @@ def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], t
     return smooth_track_poses(times, np.array(corrected), np.array(weights), static, params.smooth_window_s), static
 
 
-def snapped_static_pose(scene, poses: np.ndarray, positions: list[int], pose: np.ndarray, size: np.ndarray,
-                        params: BoxSnapParams) -> np.ndarray:
-    """(4,) global pose (x, y, z, yaw) of a static track's box moved in x, y onto the points near it in
-    its sweeps `positions` (fbsa.box_snap; points taken to the global frame with the refined poses)."""
-    R = yaw_matrix(float(pose[3]))
-    reach = params.radius_m + float(np.max(size[:2]))  # a square around the box, wider than needed
-    gathered = []
-    for i in positions:
-        xyz = scene.sweeps[i].cloud.xyz
-        center_ego = transform_points(invert_transform(poses[i]), pose[None, :3])[0]
-        near = within_square(xyz, float(center_ego[0]), float(center_ego[1]), reach)
-        gathered.append((transform_points(poses[i], xyz[near]) - pose[:3]) @ R)
-    shift = snap_shift(np.vstack(gathered), size, params)
-    snapped = np.array(pose, dtype=np.float64)
-    snapped[:2] += R[:2, :2] @ shift
+def snapped_static_poses(scene, poses: np.ndarray, static: dict[str, tuple[list[int], np.ndarray, np.ndarray]],
+                         params: BoxSnapParams) -> dict[str, np.ndarray]:
+    """track -> (4,) global pose (x, y, z, yaw) of each static track's box moved in x, y onto the points near
+    it in its sweeps (fbsa.box_snap; points taken to the global frame with the refined poses).
+    static: track -> (its sweep positions, its (4,) global pose, its box size (3,)). One pass over the
+    sweeps, each read once."""
+    gathered: dict[str, list[np.ndarray]] = {track: [] for track in static}
+    tracks_at: dict[int, list[str]] = {}
+    for track, (positions, _, _) in static.items():
+        for i in positions:
+            tracks_at.setdefault(i, []).append(track)
+    for i in sorted(tracks_at):
+        xyz = scene.sweeps[i].xyz
+        T_ego_from_global = invert_transform(poses[i])
+        for track in tracks_at[i]:
+            _, pose, size = static[track]
+            reach = params.radius_m + float(np.max(size[:2]))  # a square around the box, wider than needed
+            center_ego = transform_points(T_ego_from_global, pose[None, :3])[0]
+            near = within_square(xyz, float(center_ego[0]), float(center_ego[1]), reach)
+            gathered[track].append((transform_points(poses[i], xyz[near]) - pose[:3]) @ yaw_matrix(float(pose[3])))
+    snapped = {}
+    for track, (_, pose, size) in static.items():
+        shift = snap_shift(np.vstack(gathered[track]), size, params)
+        snapped[track] = np.array(pose, dtype=np.float64)
+        snapped[track][:2] += yaw_matrix(float(pose[3]))[:2, :2] @ shift
     return snapped
 
 
@@ -90,7 +100,7 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
     ok = scene.ok_indices()
     origin = np.asarray(scene.sensor_origin_ego, dtype=np.float64)
     initial = {i: boxes_in_ego(scene, poses, i) for i in ok}
-    first_points = {i: points_per_box(scene.sweeps[i].cloud.xyz, initial[i], origin) for i in ok}
+    first_points = {i: points_per_box(scene.sweeps[i].xyz, initial[i], origin) for i in ok}
     frames_of: dict[str, list[int]] = {}
     for i in ok:
         for track in initial[i].track_tokens:
@@ -101,7 +111,7 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
         corrections[track] = refine_track(views, params)
     snap = BoxSnapParams(max_size_m=params.snap_max_size_m, radius_m=params.snap_radius_m,
                          min_height_m=params.snap_min_height_m, keep_ratio=params.snap_keep_ratio)
-    final = {}
+    final, to_snap = {}, {}
     for track, positions in frames_of.items():
         final[track], static = smoothed_global_poses(scene, poses, initial, track, positions, corrections[track],
                                                      [len(first_points[i].get(track, ((),))[0]) for i in positions],
@@ -109,7 +119,9 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
         first = initial[positions[0]]
         size = first.sizes[first.track_tokens.index(track)]
         if static and params.snap_radius_m > 0 and float(np.max(size[:2])) <= params.snap_max_size_m:
-            final[track][:] = snapped_static_pose(scene, poses, positions, final[track][0], size, snap)
+            to_snap[track] = (positions, final[track][0], size)
+    for track, pose in snapped_static_poses(scene, poses, to_snap, snap).items():
+        final[track][:] = pose
     object_boxes, object_points = {}, {}
     for i in ok:
         boxes = initial[i]
@@ -120,7 +132,7 @@ def run(inputs: dict, params: TrackRefineParams) -> dict:
             centers[k] = transform_points(T_ego_from_global, g[None, :3])[0]
             yaws[k] = float(wrap_angle(g[3] + yaw_of(T_ego_from_global[:3, :3])))
         object_boxes[i] = replace(boxes, centers=centers, yaws=yaws)
-        object_points[i] = points_per_box(scene.sweeps[i].cloud.xyz, object_boxes[i], origin)
+        object_points[i] = points_per_box(scene.sweeps[i].xyz, object_boxes[i], origin)
     track_corrections = {track: corrections[track] for track in frames_of}
     return {"object_boxes": object_boxes, "object_points": object_points, "track_corrections": track_corrections}
 

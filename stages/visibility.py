@@ -65,12 +65,12 @@ class RayObservations:
 
 def run_rays(inputs: dict, params: VisibilityParams) -> dict:
     scene = inputs["scene"]
-    positions = [p for p in scene.output_positions() if scene.sweeps[p].cloud is not None] if params.lidar else []
+    positions = [p for p in scene.output_positions() if scene.sweeps[p].has_cloud] if params.lidar else []
     n_bytes = (int(np.prod(DEFAULT_GRID.shape)) + 7) // 8
     observed = np.empty((len(positions), n_bytes), dtype=np.uint8)
     free = np.empty((len(positions), n_bytes), dtype=np.uint8)
     for row, position in enumerate(positions):
-        observation = lidar_observation(scene.sweeps[position].cloud.xyz, scene.sensor_origin_ego, DEFAULT_GRID)
+        observation = lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
         observed[row] = np.packbits((observation != UNKNOWN).reshape(-1))
         free[row] = packed_free(observation)
     return {"observations": RayObservations([scene.sweeps[p].token for p in positions], observed, free)}

@@ -105,7 +105,7 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
     scene = inputs["scene"]
     position = frame["position"]
     sweep = scene.sweeps[position]
-    if sweep.cloud is None:
+    if not sweep.has_cloud:
         return {"failure": sweep.failure or "frame was not built"}
     ok_position = scene.ok_indices().index(position)
     T_ego_from_global = invert_transform(inputs["registration"].poses[position])

@@ -45,7 +45,7 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
         "qa_pose_correction_deg": float(np.degrees(np.arccos(np.clip((np.trace(correction[:3, :3]) - 1) / 2, -1, 1)))),
         "qa_pose_accepted": bool(registration.accepted[position]),
         "qa_pose_fitness": float(registration.fitness[position]),
-        "qa_points": len(sweep.cloud) if sweep.cloud is not None else 0,
+        "qa_points": len(sweep.stored_cloud) if sweep.has_cloud else 0,
         "qa_outliers_removed": int(outliers),
         "qa_map_status": map_status,
         "qa_map_aligned": bool(alignment is not None and alignment.applied),
@@ -82,7 +82,7 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     grids, semantics = frame["grids"], frame["final_semantics"]
     arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow, **frame["masks"]}
     record.arrays = {name: arrays[name] for name in params.members if name in arrays}
-    columns["qa_point_coverage"] = point_coverage(sweep.cloud.xyz, semantics > 0)
+    columns["qa_point_coverage"] = point_coverage(sweep.xyz, semantics > 0)
     columns["qa_occupied_voxels"] = int((semantics > 0).sum())
     columns["qa_free_space_cleared"] = int(frame["free_cleared"])
     columns["qa_unboxed_mover_voxels"] = int(grids.mover_voxels)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from nuplan_occ.io.types import Boxes, CameraCalibration, LidarFrame, LogMeta, PointCloud
+from nuplan_occ.pipeline.spilled_clouds import StoredCloud
 from nuplan_occ.storage.clips import output_index_from_timestamps
 
 
@@ -79,7 +81,8 @@ class Sweep:
     """One 20 Hz merged LiDAR sweep of the scene.
 
     logged_pose: T_global_from_ego (4, 4) at the sweep's timestamp, from the log.
-    cloud: points in the EGO frame of this sweep, xyz float32 (None when the sweep failed to load: see failure).
+    stored_cloud: where the sweep's points are kept (nuplan_occ.pipeline.spilled_clouds); None when the sweep
+    failed to load (see failure). `cloud` reads them: points in the EGO frame of this sweep, xyz float32.
     boxes: the sweep's boxes in its ego frame (logged pose); boxes_global as stored.
     is_output: True for the sweeps written to the dataset (the output rate, e.g. every other sweep).
     output_index: an output sweep's index among its scene's output frames (the manifest's `output_index`,
@@ -90,12 +93,29 @@ class Sweep:
     index: int
     timestamp_us: int
     logged_pose: np.ndarray
-    cloud: PointCloud | None
+    stored_cloud: StoredCloud | None
     boxes: Boxes
     boxes_global: Boxes
     is_output: bool
     failure: str = ""
     output_index: int = -1
+
+    @property
+    def has_cloud(self) -> bool:
+        """True when the sweep's points loaded."""
+        return self.stored_cloud is not None
+
+    @property
+    def cloud(self) -> PointCloud | None:
+        """The sweep's points, read from their store on every access (None when they failed to load)."""
+        return None if self.stored_cloud is None else self.stored_cloud.read()
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """(N, 3) float32 points of a loaded sweep, ego frame, m (read on every access)."""
+        if self.stored_cloud is None:
+            raise ValueError(f"sweep {self.token} has no points: {self.failure}")
+        return self.stored_cloud.field("xyz")
 
 
 @dataclass
@@ -121,4 +141,24 @@ class SceneData:
 
     def ok_indices(self) -> list[int]:
         """Positions (in self.sweeps) of sweeps whose points loaded."""
-        return [i for i, sweep in enumerate(self.sweeps) if sweep.cloud is not None]
+        return [i for i, sweep in enumerate(self.sweeps) if sweep.has_cloud]
+
+    def points_of(self, positions: list[int]) -> "SweepPoints":
+        """The xyz of the sweeps at `positions`, each read when asked for (they must have loaded)."""
+        return SweepPoints(self.sweeps, positions)
+
+
+class SweepPoints(Sequence):
+    """Ego-frame xyz (N_i, 3) of some of a scene's sweeps, read from their store on each access, so that a
+    pass over a scene's sweeps holds one of them at a time."""
+
+    def __init__(self, sweeps: list[Sweep], positions: list[int]) -> None:
+        self._sweeps, self._positions = sweeps, list(positions)
+
+    def __len__(self) -> int:
+        return len(self._positions)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[j] for j in range(*k.indices(len(self)))]
+        return self._sweeps[self._positions[k]].xyz
