@@ -57,8 +57,8 @@ def align_map(scene, poses: np.ndarray, layers: dict, params: LabelParams) -> tu
     refined poses, against the map's painted lines) and the stop lines to paint: the stop polygon edges
     whose strip the corrected returns show painted (None: paint whole outlines, without confirmation)."""
     used = scene.ok_indices()[::max(1, params.align_sweep_stride)]
-    returns = ground_returns(scene.points_of(used), [scene.sweeps[i].stored_cloud.field("intensity") for i in used],
-                             poses[used], scene.sensor_origin_ego, ratio=params.paint_intensity_ratio)
+    returns = ground_returns(scene.clouds_of(used), poses[used], scene.sensor_origin_ego,
+                             ratio=params.paint_intensity_ratio)
     alignment = align_points_to_lines(returns.xy[returns.bright], painted_lines(layers),
                                       max_offset_m=params.align_max_offset_m, max_yaw_deg=params.align_max_yaw_deg)
     if not params.confirm_stop_lines:

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -143,17 +144,21 @@ class SceneData:
         """Positions (in self.sweeps) of sweeps whose points loaded."""
         return [i for i, sweep in enumerate(self.sweeps) if sweep.has_cloud]
 
-    def points_of(self, positions: list[int]) -> "SweepPoints":
-        """The xyz of the sweeps at `positions`, each read when asked for (they must have loaded)."""
-        return SweepPoints(self.sweeps, positions)
+    def points_of(self, positions: list[int]) -> "SweepReads":
+        """The xyz (N_i, 3) of the sweeps at `positions`, each read when asked for (they must have loaded)."""
+        return SweepReads(self.sweeps, positions, lambda sweep: sweep.xyz)
+
+    def clouds_of(self, positions: list[int]) -> "SweepReads":
+        """The clouds (PointCloud, ego frame) of the sweeps at `positions`, each read when asked for."""
+        return SweepReads(self.sweeps, positions, lambda sweep: sweep.cloud)
 
 
-class SweepPoints(Sequence):
-    """Ego-frame xyz (N_i, 3) of some of a scene's sweeps, read from their store on each access, so that a
-    pass over a scene's sweeps holds one of them at a time."""
+class SweepReads(Sequence):
+    """Something read from the store of each of some of a scene's sweeps on each access (`read(sweep)`), so
+    that a pass over a scene's sweeps holds one of them at a time."""
 
-    def __init__(self, sweeps: list[Sweep], positions: list[int]) -> None:
-        self._sweeps, self._positions = sweeps, list(positions)
+    def __init__(self, sweeps: list[Sweep], positions: list[int], read: Callable[[Sweep], Any]) -> None:
+        self._sweeps, self._positions, self._read = sweeps, list(positions), read
 
     def __len__(self) -> int:
         return len(self._positions)
@@ -161,4 +166,4 @@ class SweepPoints(Sequence):
     def __getitem__(self, k):
         if isinstance(k, slice):
             return [self[j] for j in range(*k.indices(len(self)))]
-        return self._sweeps[self._positions[k]].xyz
+        return self._read(self._sweeps[self._positions[k]])

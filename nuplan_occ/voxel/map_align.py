@@ -14,6 +14,7 @@ correction C is a 4x4 transform acting in the global frame: T_global_from_ego(co
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,7 @@ import shapely
 from scipy import ndimage
 
 from nuplan_occ.geometry import transform_points
+from nuplan_occ.io.types import PointCloud
 
 
 @dataclass(frozen=True)
@@ -54,24 +56,56 @@ class MapAlignment:
         return C
 
 
-def flat_ground(points_ego: np.ndarray, cell_m: float = 0.5, flatness_m: float = 0.06) -> np.ndarray:
-    """(N,) bool: points (N, 3, ego frame, m) whose cell_m x cell_m column and its 8 neighbours hold only
-    points within flatness_m of each other in height: open, flat ground. Columns at a curb, a wall foot, an
-    object or vegetation are left out (their returns are bright for other reasons than paint: a curb's face
-    and edge are seen head-on)."""
-    points_ego = np.asarray(points_ego, dtype=np.float64)
-    if len(points_ego) == 0:
-        return np.zeros(0, dtype=bool)
-    cells = np.floor(points_ego[:, :2] / cell_m).astype(np.int64)
-    cells -= cells.min(axis=0) - 1
-    shape = tuple(cells.max(axis=0) + 2)
-    lowest = np.full(shape, np.inf)
-    highest = np.full(shape, -np.inf)
-    np.minimum.at(lowest, (cells[:, 0], cells[:, 1]), points_ego[:, 2])
-    np.maximum.at(highest, (cells[:, 0], cells[:, 1]), points_ego[:, 2])
+@dataclass(frozen=True)
+class FlatColumns:
+    """Which cell_m x cell_m columns of some clouds (one frame, m) are flat ground (see `flat_columns`).
+    flat[i, j] is the column of cell index first_cell + (i, j), cells counted from the frame's origin."""
+
+    flat: np.ndarray
+    first_cell: np.ndarray
+    cell_m: float
+
+    def of(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: the points (N, 3) of the clouds the columns were made of that lie in a flat column."""
+        if len(points) == 0:
+            return np.zeros(0, dtype=bool)
+        cells = _cells(points, self.cell_m) - self.first_cell
+        return self.flat[cells[:, 0], cells[:, 1]]
+
+
+def _cells(points: np.ndarray, cell_m: float) -> np.ndarray:
+    return np.floor(np.asarray(points, dtype=np.float64)[:, :2] / cell_m).astype(np.int64)
+
+
+def flat_columns(clouds: Sequence[np.ndarray], cell_m: float = 0.5, flatness_m: float = 0.06) -> FlatColumns:
+    """The columns of the clouds (each (N_i, 3), one frame, m, read twice) whose cell and its 8 neighbours
+    hold only points within flatness_m of each other in height, over all clouds together: open, flat ground.
+    Columns at a curb, a wall foot, an object or vegetation are left out (their returns are bright for other
+    reasons than paint: a curb's face and edge are seen head-on). Holds one cloud at a time."""
+    low, high = np.full(2, np.iinfo(np.int64).max), np.full(2, np.iinfo(np.int64).min)
+    for points in clouds:
+        if len(points):
+            cells = _cells(points, cell_m)
+            low, high = np.minimum(low, cells.min(axis=0)), np.maximum(high, cells.max(axis=0))
+    if np.any(low > high):
+        return FlatColumns(np.zeros((0, 0), dtype=bool), np.zeros(2, dtype=np.int64), cell_m)
+    first = low - 1  # a column of no points all around: the filters below see no edge effects
+    shape = tuple(high - first + 2)
+    lowest, highest = np.full(shape, np.inf), np.full(shape, -np.inf)
+    for points in clouds:
+        if len(points):
+            cells = _cells(points, cell_m) - first
+            heights = np.asarray(points, dtype=np.float64)[:, 2]
+            np.minimum.at(lowest, (cells[:, 0], cells[:, 1]), heights)
+            np.maximum.at(highest, (cells[:, 0], cells[:, 1]), heights)
     lowest = ndimage.minimum_filter(lowest, size=3, mode="nearest")
     highest = ndimage.maximum_filter(highest, size=3, mode="nearest")
-    return (highest - lowest <= flatness_m)[cells[:, 0], cells[:, 1]]
+    return FlatColumns(highest - lowest <= flatness_m, first, cell_m)
+
+
+def flat_ground(points_ego: np.ndarray, cell_m: float = 0.5, flatness_m: float = 0.06) -> np.ndarray:
+    """(N,) bool: points (N, 3, ego frame, m) in a flat-ground column of their own cloud (`flat_columns`)."""
+    return flat_columns([points_ego], cell_m, flatness_m).of(points_ego)
 
 
 def intensity_ratio(points_ego: np.ndarray, intensity: np.ndarray, sensor_origin_ego: np.ndarray,
@@ -108,22 +142,38 @@ class GroundReturns:
         return GroundReturns(self.xy @ correction[:2, :2].T + correction[:2, 3], self.bright)
 
 
-def ground_returns(clouds_ego: list[np.ndarray], intensities: list[np.ndarray], T_global_from_ego: np.ndarray,
-                   sensor_origin_ego: np.ndarray, ratio: float = 3.0) -> GroundReturns:
-    """The sweeps' returns on ground that is flat in all sweeps together (`flat_ground` of the merged cloud,
+class _Placed(Sequence):
+    """The xyz of clouds[k] moved by T[k] (made when asked for)."""
+
+    def __init__(self, clouds: Sequence, T: np.ndarray) -> None:
+        self._clouds, self._T = clouds, T
+
+    def __len__(self) -> int:
+        return len(self._clouds)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[j] for j in range(*k.indices(len(self)))]
+        return transform_points(self._T[k], self._clouds[k].xyz)
+
+
+def ground_returns(clouds_ego: Sequence[PointCloud], T_global_from_ego: np.ndarray, sensor_origin_ego: np.ndarray,
+                   ratio: float = 3.0) -> GroundReturns:
+    """The sweeps' returns on ground that is flat in all sweeps together (`flat_columns` of the merged cloud,
     dense enough to reveal every curb), each marked bright (paint) when at least `ratio` times brighter than
     the flat ground at its range in its own sweep.
-    clouds_ego[i]: (N_i, 3) ego frame of sweep i, m; T_global_from_ego: (S, 4, 4) the sweeps' poses."""
-    merged, bright = [], []
-    for xyz, values, T in zip(clouds_ego, intensities, T_global_from_ego):
-        merged.append(transform_points(T, xyz))
+    clouds_ego[i]: sweep i in its ego frame (xyz m, intensity; any sequence, each read three times, one at a
+    time); T_global_from_ego: (S, 4, 4) the sweeps' poses."""
+    T = np.asarray(T_global_from_ego, dtype=np.float64)
+    columns = flat_columns(_Placed(clouds_ego, T))
+    xy, bright = [np.zeros((0, 2))], [np.zeros(0, dtype=bool)]
+    for k, cloud in enumerate(clouds_ego):
+        points = transform_points(T[k], cloud.xyz)
+        flat = columns.of(points)
         with np.errstate(invalid="ignore"):
-            bright.append(intensity_ratio(xyz, values, sensor_origin_ego) >= ratio)
-    if not merged:
-        return GroundReturns(np.zeros((0, 2)), np.zeros(0, dtype=bool))
-    points, bright_all = np.vstack(merged), np.concatenate(bright)
-    flat = flat_ground(points)
-    return GroundReturns(points[flat, :2], bright_all[flat])
+            bright.append((intensity_ratio(cloud.xyz, cloud.intensity, sensor_origin_ego) >= ratio)[flat])
+        xy.append(points[flat, :2])
+    return GroundReturns(np.vstack(xy), np.concatenate(bright))
 
 
 def polygon_edges(polygons: np.ndarray) -> np.ndarray:

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import shapely
 
-from nuplan_occ.voxel.map_align import (GroundReturns, align_points_to_lines, flat_ground, ground_returns,
-                                        intensity_ratio, paint_confirmed, polygon_edges)
+from nuplan_occ.io.types import PointCloud
+from nuplan_occ.voxel.map_align import (GroundReturns, align_points_to_lines, flat_columns, flat_ground,
+                                        ground_returns, intensity_ratio, paint_confirmed, polygon_edges)
 
 PAINT_HALF_WIDTH = 0.075
 
@@ -104,6 +105,30 @@ def test_flat_ground_leaves_out_columns_at_a_curb():
     assert not flat[np.abs(xy[:, 0] - 1.0) < 0.1].any()  # at the curb: not flat
 
 
+def test_flatness_is_judged_over_all_sweeps_together_one_sweep_at_a_time():
+    """Sweep 0 sees only flat road; sweep 1, from 10 m further on, also sees a 0.15 m curb at global x = 12 m.
+    The road returns of sweep 0 next to the curb are not flat ground; the same merged cloud decides as when
+    the sweeps are merged first."""
+    x, y = np.meshgrid(np.arange(5.0, 15.0, 0.1), np.arange(-2.0, 2.0, 0.1), indexing="ij")
+    road = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    curb = road[np.abs(road[:, 0] - 12.0) < 0.3] + [0.0, 0.0, 0.15]
+    T = np.repeat(np.eye(4)[None], 2, axis=0)
+    T[1, 0, 3] = 10.0
+    sweeps_ego = [road, np.vstack([road, curb]) - [10.0, 0.0, 0.0]]
+    placed = [sweeps_ego[0], sweeps_ego[1] + [10.0, 0.0, 0.0]]
+    columns = flat_columns(placed)
+    near_curb = np.abs(road[:, 0] - 12.0) < 0.5
+    flat0 = columns.of(placed[0])
+    assert not flat0[near_curb].any() and flat0[np.abs(road[:, 0] - 12.0) > 1.0].all()
+    assert flat_ground(placed[0]).all()  # alone, sweep 0 is flat everywhere
+    np.testing.assert_array_equal(np.concatenate([columns.of(p) for p in placed]), flat_ground(np.vstack(placed)))
+    clouds = [PointCloud(p, np.full(len(p), 10.0), np.zeros(len(p), np.int16), np.zeros(len(p), np.int8), "ego")
+              for p in sweeps_ego]
+    returns = ground_returns(clouds, T, np.array([0.0, 0.0, 1.9]))
+    assert len(returns.xy) == int(np.concatenate([columns.of(p) for p in placed]).sum())
+    assert not np.any(np.abs(returns.xy[:, 0] - 12.0) < 0.5)
+
+
 def test_intensity_ratio_compares_with_the_ground_at_the_same_range():
     rng = np.random.default_rng(3)
     r = rng.uniform(5.0, 30.0, 5000)
@@ -126,7 +151,8 @@ def test_ground_returns_keep_paint_and_drop_the_bright_curb():
     intensity = np.where(painted | curb, 50.0, 10.0)
     T = np.eye(4)
     T[:2, 3] = [100.0, 200.0]
-    returns = ground_returns([np.column_stack([xy, z])], [intensity], T[None], np.array([0.0, 0.0, 1.9]))
+    cloud = PointCloud(np.column_stack([xy, z]), intensity, np.zeros(len(xy), np.int16), np.zeros(len(xy), np.int8), "ego")
+    returns = ground_returns([cloud], T[None], np.array([0.0, 0.0, 1.9]))
     bright_y = returns.xy[returns.bright, 1] - 200.0
     assert len(bright_y) > 100 and np.all(np.abs(bright_y - 1.7) <= PAINT_HALF_WIDTH + 1e-9)
 
