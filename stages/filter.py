@@ -41,5 +41,5 @@ def run(inputs: dict, params: FilterParams) -> dict:
     return {"background": background, "outliers_removed": removed}
 
 
-STAGE = Stage("filter", inputs=("scene", "splits"), outputs=("background", "outliers_removed"),
+STAGE = Stage("filter", inputs=("scene", "splits"), outputs=("background", "outliers_removed"), item_outputs=("background",),
               params_type=FilterParams, run=run, code=("nuplan_occ.fbsa.outliers", "nuplan_occ.fbsa.knn"), doc=__doc__ or "")

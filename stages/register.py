@@ -11,11 +11,12 @@ import numpy as np
 
 from nuplan_occ.fbsa.register import RegistrationParams, refine_poses
 from nuplan_occ.pipeline.stage import Stage
+from nuplan_occ.sequences import MappedSequence
 
 
 def run(inputs: dict, params: RegistrationParams) -> dict:
     scene = inputs["scene"]
-    clouds = [np.zeros((0, 3)) if points is None else points for points in inputs["background"]]
+    clouds = MappedSequence(inputs["background"], lambda points: np.zeros((0, 3)) if points is None else points)
     logged = np.stack([sweep.logged_pose for sweep in scene.sweeps])
     return {"registration": refine_poses(clouds, logged, params)}
 

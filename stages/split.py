@@ -32,5 +32,5 @@ def run(inputs: dict, params: SplitParams) -> dict:
     return {"splits": splits}
 
 
-STAGE = Stage("split", inputs=("scene",), outputs=("splits",), params_type=SplitParams, run=run,
+STAGE = Stage("split", inputs=("scene",), outputs=("splits",), params_type=SplitParams, run=run, item_outputs=("splits",),
               code=("nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_kernels"), doc=__doc__ or "")

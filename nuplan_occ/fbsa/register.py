@@ -23,6 +23,7 @@ Poses are T_global_from_ego (4, 4); clouds are background points (n, 3) in each 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -233,7 +234,7 @@ def fit_anchor(chain: np.ndarray, logged: np.ndarray, sigma_xy_m: float = 0.3, s
     return make_transform(R, t)
 
 
-def _check_inputs(clouds_ego: list[np.ndarray], logged_poses: np.ndarray, params: RegistrationParams) -> np.ndarray:
+def _check_inputs(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray, params: RegistrationParams) -> np.ndarray:
     logged = np.asarray(logged_poses, dtype=np.float64)
     if logged.ndim != 3 or logged.shape[1:] != (4, 4):
         raise FbsaInputError(f"refine_poses: logged_poses must be (F, 4, 4), got {logged.shape}")
@@ -241,15 +242,20 @@ def _check_inputs(clouds_ego: list[np.ndarray], logged_poses: np.ndarray, params
         raise FbsaInputError(f"refine_poses: {len(clouds_ego)} clouds but {len(logged)} logged poses")
     if params.anchor not in ANCHORS:
         raise FbsaInputError(f"refine_poses: anchor must be one of {ANCHORS}, got {params.anchor!r}")
-    for i, c in enumerate(clouds_ego):
-        if np.ndim(c) != 2 or np.shape(c)[1] != 3:
-            raise FbsaInputError(f"refine_poses: cloud {i} must be (n, 3), got shape {np.shape(c)}")
     return logged
 
 
-def refine_poses(clouds_ego: list[np.ndarray], logged_poses: np.ndarray,
+def _checked_cloud(clouds_ego: Sequence[np.ndarray], k: int) -> np.ndarray:
+    cloud = clouds_ego[k]
+    if np.ndim(cloud) != 2 or np.shape(cloud)[1] != 3:
+        raise FbsaInputError(f"refine_poses: cloud {k} must be (n, 3), got shape {np.shape(cloud)}")
+    return cloud
+
+
+def refine_poses(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray,
                  params: RegistrationParams | None = None) -> RegistrationResult:
-    """Refined T_global_from_ego of every frame (see the module docstring for the procedure and anchoring)."""
+    """Refined T_global_from_ego of every frame (see the module docstring for the procedure and anchoring).
+    clouds_ego: any sequence; each cloud is read once, in frame order."""
     params = params or RegistrationParams()
     logged = _check_inputs(clouds_ego, logged_poses, params)
     F = len(logged)
@@ -263,7 +269,8 @@ def refine_poses(clouds_ego: list[np.ndarray], logged_poses: np.ndarray,
     for k in range(F):
         prior = local_log[0] if k == 0 else chain[k - 1] @ invert_transform(local_log[k - 1]) @ local_log[k]
         chain[k] = prior
-        source = voxel_centroids(clouds_ego[k], params.voxel_size_m)
+        cloud = _checked_cloud(clouds_ego, k)
+        source = voxel_centroids(cloud, params.voxel_size_m)
         n_src = len(source)
         if k == 0:
             accepted[k] = True
@@ -278,7 +285,7 @@ def refine_poses(clouds_ego: list[np.ndarray], logged_poses: np.ndarray,
             if accepted[k]:
                 chain[k] = T
         if n_src >= params.min_points and (accepted[k] or not local_map.sweeps):
-            local_map.add(transform_points(chain[k], voxel_centroids(clouds_ego[k], params.map_voxel_m)))
+            local_map.add(transform_points(chain[k], voxel_centroids(cloud, params.map_voxel_m)))
     anchor = fit_anchor(chain, local_log, params.log_sigma_xy_m, params.log_sigma_deg) \
         if params.anchor == "fit" and F else np.eye(4)
     poses = np.einsum("ij,jk,fkl->fil", origin, anchor, chain)

@@ -125,7 +125,7 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
         if result is not None and stage.cache:
             result.computed.append(stage.name)
         if stage.cache:
-            cache.put(stage.name, keys[stage.name], outputs)
+            outputs.update(cache.put(stage.name, keys[stage.name], outputs, stage.item_outputs))
         finished(stage)
         return outputs
 

@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from nuplan_occ.io.types import Boxes, CameraCalibration, LidarFrame, LogMeta, PointCloud
 from nuplan_occ.pipeline.spilled_clouds import StoredCloud
+from nuplan_occ.sequences import MappedSequence
 from nuplan_occ.storage.clips import output_index_from_timestamps
 
 
@@ -144,26 +143,10 @@ class SceneData:
         """Positions (in self.sweeps) of sweeps whose points loaded."""
         return [i for i, sweep in enumerate(self.sweeps) if sweep.has_cloud]
 
-    def points_of(self, positions: list[int]) -> "SweepReads":
+    def points_of(self, positions: list[int]) -> MappedSequence:
         """The xyz (N_i, 3) of the sweeps at `positions`, each read when asked for (they must have loaded)."""
-        return SweepReads(self.sweeps, positions, lambda sweep: sweep.xyz)
+        return MappedSequence(list(positions), lambda position: self.sweeps[position].xyz)
 
-    def clouds_of(self, positions: list[int]) -> "SweepReads":
+    def clouds_of(self, positions: list[int]) -> MappedSequence:
         """The clouds (PointCloud, ego frame) of the sweeps at `positions`, each read when asked for."""
-        return SweepReads(self.sweeps, positions, lambda sweep: sweep.cloud)
-
-
-class SweepReads(Sequence):
-    """Something read from the store of each of some of a scene's sweeps on each access (`read(sweep)`), so
-    that a pass over a scene's sweeps holds one of them at a time."""
-
-    def __init__(self, sweeps: list[Sweep], positions: list[int], read: Callable[[Sweep], Any]) -> None:
-        self._sweeps, self._positions, self._read = sweeps, list(positions), read
-
-    def __len__(self) -> int:
-        return len(self._positions)
-
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            return [self[j] for j in range(*k.indices(len(self)))]
-        return self._read(self._sweeps[self._positions[k]])
+        return MappedSequence(list(positions), lambda position: self.sweeps[position].cloud)

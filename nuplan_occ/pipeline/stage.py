@@ -23,6 +23,10 @@ class Stage:
     stages, or the scene's source data for the first stage); it returns a dict with exactly `outputs`.
     code: modules whose source is part of this stage's cache key (a change in them reruns the stage).
     cache: False for stages whose outputs are cheaper to recompute than to store (e.g. reading input).
+    item_outputs: outputs that are per-sweep lists (aligned with scene.sweeps): the cache stores them one
+    element at a time and the stages after this one read them back one element per access
+    (pipeline.cache.StoredItems), so a scene's per-sweep outputs are not held in memory; their readers
+    may only index or iterate them.
     per_frame: a frame stage: run(inputs, frame, params) -> frame outputs, where `inputs` holds the scene
     artifacts named in `inputs` and `frame` the frame's artifacts so far ("position": the sweep's position in
     the scene, plus the outputs of earlier frame stages); it may set "failure" (reason) to skip the frame's
@@ -41,6 +45,7 @@ class Stage:
     run: Callable[[dict[str, Any], Any], dict[str, Any]]
     code: tuple[str, ...] = ()
     cache: bool = True
+    item_outputs: tuple[str, ...] = ()
     doc: str = field(default="", compare=False)
     per_frame: bool = False
     params_section: str = ""

@@ -23,6 +23,7 @@ from scipy import ndimage
 
 from nuplan_occ.geometry import transform_points
 from nuplan_occ.io.types import PointCloud
+from nuplan_occ.sequences import MappedSequence
 
 
 @dataclass(frozen=True)
@@ -142,21 +143,6 @@ class GroundReturns:
         return GroundReturns(self.xy @ correction[:2, :2].T + correction[:2, 3], self.bright)
 
 
-class _Placed(Sequence):
-    """The xyz of clouds[k] moved by T[k] (made when asked for)."""
-
-    def __init__(self, clouds: Sequence, T: np.ndarray) -> None:
-        self._clouds, self._T = clouds, T
-
-    def __len__(self) -> int:
-        return len(self._clouds)
-
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            return [self[j] for j in range(*k.indices(len(self)))]
-        return transform_points(self._T[k], self._clouds[k].xyz)
-
-
 def ground_returns(clouds_ego: Sequence[PointCloud], T_global_from_ego: np.ndarray, sensor_origin_ego: np.ndarray,
                    ratio: float = 3.0) -> GroundReturns:
     """The sweeps' returns on ground that is flat in all sweeps together (`flat_columns` of the merged cloud,
@@ -165,7 +151,7 @@ def ground_returns(clouds_ego: Sequence[PointCloud], T_global_from_ego: np.ndarr
     clouds_ego[i]: sweep i in its ego frame (xyz m, intensity; any sequence, each read three times, one at a
     time); T_global_from_ego: (S, 4, 4) the sweeps' poses."""
     T = np.asarray(T_global_from_ego, dtype=np.float64)
-    columns = flat_columns(_Placed(clouds_ego, T))
+    columns = flat_columns(MappedSequence(range(len(clouds_ego)), lambda k: transform_points(T[k], clouds_ego[k].xyz)))
     xy, bright = [np.zeros((0, 2))], [np.zeros(0, dtype=bool)]
     for k, cloud in enumerate(clouds_ego):
         points = transform_points(T[k], cloud.xyz)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import pickle
 from dataclasses import dataclass
 
+import numpy as np
 import pytest
 
 from nuplan_occ.pipeline.cache import StageCache, stable_hash
@@ -57,3 +59,23 @@ def test_cache_round_trip_and_damaged_entry_counts_as_absent(tmp_path):
     (tmp_path / "split" / "k.pkl.zst").write_bytes(b"garbage")
     assert cache.get("split", "k") is None
     assert not list((tmp_path / "split").glob(".*.tmp"))
+
+
+def test_an_output_stored_item_by_item_reads_back_one_element_per_access(tmp_path):
+    cache = StageCache(tmp_path)
+    sweeps = [np.arange(3000, dtype=np.float32).reshape(-1, 3) + k for k in range(4)] + [None]
+    readers = cache.put("filter", "k", {"background": sweeps, "outliers_removed": [1, 2, 3, 4, 0]},
+                        item_outputs=("background",))
+    for outputs in (readers, cache.get("filter", "k")):
+        stored = outputs["background"]
+        assert len(stored) == 5 and stored[4] is None and stored[-1] is None
+        np.testing.assert_array_equal(stored[2], sweeps[2])
+        assert stored[2] is not stored[2]  # read on every access, nothing kept
+        assert [s is None for s in stored] == [False] * 4 + [True]
+        with pytest.raises(IndexError):
+            stored[5]
+    assert cache.get("filter", "k")["outliers_removed"] == [1, 2, 3, 4, 0]
+    assert pickle.loads(pickle.dumps(readers["background"]))[:1][0].tolist() == sweeps[0].tolist()
+    items = tmp_path / "filter" / "k.background.items"
+    items.write_bytes(items.read_bytes()[:-10])  # a damaged (truncated) item file: the entry counts as absent
+    assert cache.get("filter", "k") is None
