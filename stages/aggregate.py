@@ -28,6 +28,7 @@ from nuplan_occ.fbsa.voxel_reduce import voxel_keys
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
+from nuplan_occ.sequences import MappedSequence
 
 
 @dataclass(frozen=True)
@@ -82,29 +83,16 @@ def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray,
     return movers
 
 
-class ClearedClouds(Sequence):
-    """The background clouds of sweeps `positions` (ego frame) without the points near their objects'
-    corrected boxes (object_clearance_m < 0: as they are), made when asked for, so that a scene never holds
-    a second copy of every sweep's background (an output sweep is cleared twice: for the aggregate and for
-    its movers; the compiled box test makes that cheaper than holding the copies)."""
-
-    def __init__(self, background: list, object_boxes: list, positions: list[int], params: AggregateParams):
-        self._background, self._boxes, self._positions, self._params = background, object_boxes, positions, params
-
-    def __len__(self) -> int:
-        return len(self._positions)
-
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            return [self[j] for j in range(*k.indices(len(self)))]
-        return self.of(self._positions[k])
-
-    def of(self, position: int) -> np.ndarray:
-        """The cleared background of the sweep at `position` (scene order)."""
-        cloud, params = self._background[position], self._params
-        if params.object_clearance_m < 0:
-            return cloud
-        return cloud[outside_boxes(cloud, self._boxes[position], params.object_clearance_m, params.ground_keep_m)]
+def cleared_background(background: Sequence, object_boxes: Sequence, position: int,
+                       params: AggregateParams) -> np.ndarray:
+    """The background (ego frame) of the sweep at `position` without the points near its objects' corrected
+    boxes (object_clearance_m < 0: as it is). Made when asked for, so that a scene never holds a second copy
+    of every sweep's background (an output sweep is cleared twice: for the aggregate and for its movers; the
+    compiled box test makes that cheaper than holding the copies)."""
+    cloud = background[position]
+    if params.object_clearance_m < 0:
+        return cloud
+    return cloud[outside_boxes(cloud, object_boxes[position], params.object_clearance_m, params.ground_keep_m)]
 
 
 def run(inputs: dict, params: AggregateParams) -> dict:
@@ -115,7 +103,10 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     crop = None
     if params.crop_margin_m >= 0 and outputs:
         crop = (poses[outputs], DEFAULT_GRID.lower - params.crop_margin_m, DEFAULT_GRID.upper + params.crop_margin_m)
-    clouds = ClearedClouds(inputs["background"], inputs["object_boxes"], ok, params)
+    def cleared(position: int) -> np.ndarray:
+        return cleared_background(inputs["background"], inputs["object_boxes"], position, params)
+
+    clouds = MappedSequence(ok, cleared)
     background = aggregate_background(
         clouds,
         np.repeat(scene.sensor_origin_ego[None], len(ok), axis=0),
@@ -134,7 +125,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                protect_dilation=params.dynamic_protect_dilation,
                                occupied_ratio=params.dynamic_occupied_ratio)
         scene_from_global = invert_transform(background.T_global_from_scene)
-        frame_movers = movers_by_frame(background, dynamic, ((p, clouds.of(p)) for p in outputs),
+        frame_movers = movers_by_frame(background, dynamic, ((p, cleared(p)) for p in outputs),
                                        {p: scene_from_global @ poses[p] for p in outputs},
                                        params.voxel_downsample_m or MOVER_CELL_M)
         background = BackgroundAggregate(background.points[~dynamic], background.sensor_origins[~dynamic],
