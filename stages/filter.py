@@ -1,7 +1,8 @@
 """Stage 2, filter (FBSA): statistical outlier removal on each sweep's background points.
 
-Inputs: `scene`, `splits`. Outputs: `background` (list of (n, 3) ego-frame points per sweep, None for failed
-sweeps) and `outliers_removed` (count per sweep).
+Inputs: `scene`, `splits`. Outputs: `background` (sequence of (n, 3) ego-frame points per sweep, None for
+failed sweeps; an item output: later stages read one sweep per access) and `outliers_removed` (count per
+sweep).
 """
 
 from __future__ import annotations
@@ -41,5 +42,6 @@ def run(inputs: dict, params: FilterParams) -> dict:
     return {"background": background, "outliers_removed": removed}
 
 
-STAGE = Stage("filter", inputs=("scene", "splits"), outputs=("background", "outliers_removed"), item_outputs=("background",),
-              params_type=FilterParams, run=run, code=("nuplan_occ.fbsa.outliers", "nuplan_occ.fbsa.knn"), doc=__doc__ or "")
+STAGE = Stage("filter", inputs=("scene", "splits"), outputs=("background", "outliers_removed"),
+              item_outputs=("background",), params_type=FilterParams, run=run,
+              code=("nuplan_occ.fbsa.outliers", "nuplan_occ.fbsa.knn"), doc=__doc__ or "")

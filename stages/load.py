@@ -91,4 +91,5 @@ def run(inputs: dict, params: LoadParams) -> dict:
 
 
 STAGE = Stage("load", inputs=("task",), outputs=("scene",), params_type=LoadParams, run=run,
-              code=("nuplan_occ.io.reader", "nuplan_occ.io.pcd", "nuplan_occ.pipeline.spilled_clouds"), cache=False, doc=__doc__ or "")
+              code=("nuplan_occ.io.reader", "nuplan_occ.io.pcd", "nuplan_occ.pipeline.spilled_clouds"), cache=False,
+              doc=__doc__ or "")

@@ -1,7 +1,8 @@
 """Stage 1, split (FBSA): per sweep, foreground points of each track in its box frame, background
 points outside every enlarged box and outside the ego vehicle; the margin shell goes to neither.
 
-Inputs: `scene`. Outputs: `splits` (list aligned with scene.sweeps; None for failed sweeps).
+Inputs: `scene`. Outputs: `splits` (sequence aligned with scene.sweeps, None for failed sweeps; an item
+output: the filter reads one sweep per access).
 """
 
 from __future__ import annotations
@@ -32,5 +33,5 @@ def run(inputs: dict, params: SplitParams) -> dict:
     return {"splits": splits}
 
 
-STAGE = Stage("split", inputs=("scene",), outputs=("splits",), params_type=SplitParams, run=run, item_outputs=("splits",),
-              code=("nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_kernels"), doc=__doc__ or "")
+STAGE = Stage("split", inputs=("scene",), outputs=("splits",), item_outputs=("splits",), params_type=SplitParams,
+              run=run, code=("nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_kernels"), doc=__doc__ or "")

@@ -142,7 +142,8 @@ class StageCache:
             raise EOFError(f"{path}: {path.stat().st_size} bytes, the entry says {ref.bounds[-1]}")
         return StoredItems(path, ref.bounds)
 
-    def put(self, stage: str, key: str, outputs: dict[str, Any], item_outputs: tuple[str, ...] = ()) -> dict[str, StoredItems]:
+    def put(self, stage: str, key: str, outputs: dict[str, Any],
+            item_outputs: tuple[str, ...] = ()) -> dict[str, StoredItems]:
         """Store outputs atomically, pickled straight into the zstd stream (an entry of several GB is never
         held in memory as a whole, pickled or compressed). The outputs named in item_outputs (sequences) are
         stored one element per frame, before the entry that points to them; returns their readers."""
