@@ -73,6 +73,7 @@ def snapped_static_poses(scene, poses: np.ndarray, static: dict[str, tuple[list[
     static: track -> (its sweep positions, its (4,) global pose, its box size (3,)). One pass over the
     sweeps, each read once."""
     gathered: dict[str, list[np.ndarray]] = {track: [] for track in static}
+    R = {track: yaw_matrix(float(pose[3])) for track, (_, pose, _) in static.items()}  # box from global axes
     tracks_at: dict[int, list[str]] = {}
     for track, (positions, _, _) in static.items():
         for i in positions:
@@ -85,12 +86,12 @@ def snapped_static_poses(scene, poses: np.ndarray, static: dict[str, tuple[list[
             reach = params.radius_m + float(np.max(size[:2]))  # a square around the box, wider than needed
             center_ego = transform_points(T_ego_from_global, pose[None, :3])[0]
             near = within_square(xyz, float(center_ego[0]), float(center_ego[1]), reach)
-            gathered[track].append((transform_points(poses[i], xyz[near]) - pose[:3]) @ yaw_matrix(float(pose[3])))
+            gathered[track].append((transform_points(poses[i], xyz[near]) - pose[:3]) @ R[track])
     snapped = {}
     for track, (_, pose, size) in static.items():
         shift = snap_shift(np.vstack(gathered[track]), size, params)
         snapped[track] = np.array(pose, dtype=np.float64)
-        snapped[track][:2] += yaw_matrix(float(pose[3]))[:2, :2] @ shift
+        snapped[track][:2] += R[track][:2, :2] @ shift
     return snapped
 
 

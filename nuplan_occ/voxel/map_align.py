@@ -151,7 +151,8 @@ def ground_returns(clouds_ego: Sequence[PointCloud], T_global_from_ego: np.ndarr
     clouds_ego[i]: sweep i in its ego frame (xyz m, intensity; any sequence, each read three times, one at a
     time); T_global_from_ego: (S, 4, 4) the sweeps' poses."""
     T = np.asarray(T_global_from_ego, dtype=np.float64)
-    columns = flat_columns(MappedSequence(range(len(clouds_ego)), lambda k: transform_points(T[k], clouds_ego[k].xyz)))
+    placed = MappedSequence(range(len(clouds_ego)), lambda k: transform_points(T[k], clouds_ego[k].xyz))
+    columns = flat_columns(placed)
     xy, bright = [np.zeros((0, 2))], [np.zeros(0, dtype=bool)]
     for k, cloud in enumerate(clouds_ego):
         points = transform_points(T[k], cloud.xyz)
