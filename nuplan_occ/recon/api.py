@@ -66,16 +66,16 @@ def reconstruct(
     pts, origins = _validate(points, sensor_origins, method, params)
     if method == "none":
         return Surface(vertices=pts.copy(), faces=np.zeros((0, 3), dtype=np.int64), frame=frame)
-    normals = estimate_normals(pts, origins, params.normal_knn)
     info: dict = {"method": method, "points": len(pts)}
     if method == "poisson":
         vertices, faces = poisson_mesh(
-            pts, normals, params.poisson_depth, params.poisson_density_quantile, params.mask_distance, cKDTree(pts),
+            pts, estimate_normals(pts, origins, params.normal_knn), params.poisson_depth,
+            params.poisson_density_quantile, params.mask_distance, cKDTree(pts),
             threads=params.threads or -1,
         )
     else:
         with torch_threads(params.threads):
-            vertices, faces, stats = nksr_mesh(pts, normals, params)
+            vertices, faces, stats = nksr_mesh(pts, origins, params)
         info["chunks"] = [dataclasses.asdict(s) for s in stats]
     vertices, faces = clean_mesh(vertices, faces, params.min_component_faces, params.max_hole_edges)
     return Surface(vertices=vertices, faces=faces, frame=frame, info=info)

@@ -38,8 +38,8 @@ from nuplan_occ.recon.hierarchy import VoxelHierarchy, unique_voxels
 from nuplan_occ.recon.params import ReconParams
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
-BATCH = 100_000
-"""Query points per vectorised stencil batch (bounds the (B, 27, 3) temporaries)."""
+BATCH = 25_000
+"""Query points per vectorised stencil batch (bounds the (B, 27, 3) temporaries per level)."""
 FRONT_OFFSETS = (1.0,)
 """Distances t (level-0 voxels) of the front-offset constraints f(ybar + t nbar) = t. One voxel:
 on the synthetic street, (1, 2) lost 1 % recall at 0.25 m (thin gaps under cars, curbs)."""
@@ -85,30 +85,36 @@ def _design_rows(
     hierarchy: VoxelHierarchy, u: torch.Tensor, row_scale: torch.Tensor, gradient: bool
 ) -> sp.csr_matrix:
     """Rows sqrt(w) * basis values (K rows) or sqrt(w) * basis gradients (3K rows, x then y then z)
-    at query points u (K, 3) float64, level-0 units."""
+    at query points u (K, 3) float64, level-0 units. Built as CSR directly (int32 column ids,
+    float32 values; a row's entries level by level), batch by batch."""
     k = len(u)
-    n_rows = 3 * k if gradient else k
-    rows, cols, data = [], [], []
+    blocks = 3 if gradient else 1
+    counts: list[list[torch.Tensor]] = [[] for _ in range(blocks)]
+    cols: list[list[torch.Tensor]] = [[] for _ in range(blocks)]
+    data: list[list[torch.Tensor]] = [[] for _ in range(blocks)]
     for start in range(0, k, BATCH):
         part = u[start:start + BATCH]
         scale = row_scale[start:start + BATCH].unsqueeze(1)
-        row_ids = torch.arange(start, start + len(part)).unsqueeze(1).expand(-1, 27)
+        ids, terms = [], []
         for level in hierarchy.levels:
             ijk, values, grads = stencil(part, level.size, gradient)
-            ids = level.ids(ijk)
-            keep = ids >= 0
-            if gradient:
-                for axis in range(3):
-                    rows.append((row_ids + axis * k)[keep])
-                    cols.append(ids[keep])
-                    data.append((grads[..., axis] * scale)[keep].to(torch.float32))
-            else:
-                rows.append(row_ids[keep])
-                cols.append(ids[keep])
-                data.append((values * scale)[keep].to(torch.float32))
+            ids.append(level.ids(ijk))
+            terms.append(grads if gradient else values.unsqueeze(-1))
+        row_ids, row_terms = torch.cat(ids, dim=1), torch.cat(terms, dim=1)
+        keep = row_ids >= 0
+        kept_ids = row_ids[keep].to(torch.int32)
+        for block in range(blocks):
+            counts[block].append(keep.sum(dim=1))
+            cols[block].append(kept_ids)
+            data[block].append((row_terms[..., block] * scale)[keep].to(torch.float32))
+    per_row = torch.cat([torch.zeros(1, dtype=torch.int64)] + [c for block in counts for c in block])
+    indptr = torch.cumsum(per_row, dim=0)
+    if int(indptr[-1]) < 2**31:  # int32 column ids keep int32 row pointers (scipy shares one index type)
+        indptr = indptr.to(torch.int32)
     return sp.csr_matrix(
-        (torch.cat(data).numpy(), (torch.cat(rows).numpy(), torch.cat(cols).numpy())),
-        shape=(n_rows, hierarchy.num_unknowns),
+        (torch.cat([d for block in data for d in block]).numpy(),
+         torch.cat([c for block in cols for c in block]).numpy(), indptr.numpy()),
+        shape=(blocks * k, hierarchy.num_unknowns),
     )
 
 
@@ -125,6 +131,18 @@ def _ridge(hierarchy: VoxelHierarchy) -> sp.csr_matrix:
         data.append(weights.expand_as(ids)[keep])
     n = hierarchy.num_unknowns
     return sp.csr_matrix((torch.cat(data).numpy(), (torch.cat(rows).numpy(), torch.cat(cols).numpy())), shape=(n, n))
+
+
+def _normal_equations(blocks: list[tuple[sp.csr_matrix, np.ndarray]],
+                      ridge: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray]:
+    """(G^T G + ridge (CSR), G^T y float32) of the design G stacking the blocks' rows and the targets y
+    stacking theirs. The design is the solve's largest array: `blocks` is emptied once it is stacked,
+    and G^T y is taken before G^T G is formed."""
+    design = sp.vstack([rows for rows, _ in blocks], format="csr")
+    targets = np.concatenate([values for _, values in blocks])
+    blocks.clear()
+    rhs = np.asarray(design.T @ targets, dtype=np.float32)
+    return (design.T @ design + ridge).tocsr(), rhs
 
 
 def _voxel_means(index: torch.Tensor, count: int, values: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
@@ -152,19 +170,18 @@ def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, param
     grad_scale = torch.sqrt(params.gradient_weight * confidence)
 
     hierarchy = VoxelHierarchy.build(occupied, params.levels)
-    g_value = _design_rows(hierarchy, sub_centroid, value_scale, gradient=False)
-    g_grad = _design_rows(hierarchy, centroid, grad_scale, gradient=True)
-    target = (grad_scale.unsqueeze(1) * unit_normal).T.reshape(-1).numpy().astype(np.float32)
     steps = torch.tensor(FRONT_OFFSETS, dtype=torch.float64)
     front = (centroid.unsqueeze(0) + steps[:, None, None] * unit_normal.unsqueeze(0)).reshape(-1, 3)
     front_scale = torch.sqrt(params.offset_weight * confidence).repeat(len(FRONT_OFFSETS))
-    g_front = _design_rows(hierarchy, front, front_scale, gradient=False)
-    front_target = (front_scale * steps.repeat_interleave(m0)).numpy().astype(np.float32)
-
-    design = sp.vstack([g_value, g_grad, g_front], format="csr")
-    targets = np.concatenate([np.zeros(g_value.shape[0], dtype=np.float32), target, front_target])
-    matrix = (design.T @ design + params.ridge_weight * _ridge(hierarchy)).tocsr()
-    rhs = torch.from_numpy(np.asarray(design.T @ targets, dtype=np.float32))
+    blocks = [
+        (_design_rows(hierarchy, sub_centroid, value_scale, gradient=False), np.zeros(len(sub_centroid), np.float32)),
+        (_design_rows(hierarchy, centroid, grad_scale, gradient=True),
+         (grad_scale.unsqueeze(1) * unit_normal).T.reshape(-1).numpy().astype(np.float32)),
+        (_design_rows(hierarchy, front, front_scale, gradient=False),
+         (front_scale * steps.repeat_interleave(m0)).numpy().astype(np.float32)),
+    ]
+    matrix, rhs_values = _normal_equations(blocks, params.ridge_weight * _ridge(hierarchy))
+    rhs = torch.from_numpy(rhs_values)
     diagonal = torch.from_numpy(matrix.diagonal().astype(np.float32))
     result = jacobi_pcg(to_torch_csr(matrix), diagonal, rhs, params.pcg_tolerance, params.pcg_max_iter)
     field = ImplicitField(hierarchy=hierarchy, coefficients=result.x, anchor=np.asarray(anchor, dtype=np.float64), voxel_size=params.voxel_size)
