@@ -128,8 +128,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
         frame_movers = movers_by_frame(background, dynamic, ((p, cleared(p)) for p in outputs),
                                        {p: scene_from_global @ poses[p] for p in outputs},
                                        params.voxel_downsample_m or MOVER_CELL_M)
-        background = BackgroundAggregate(background.points[~dynamic], background.sensor_origins[~dynamic],
-                                         background.frame_ids[~dynamic], background.T_global_from_scene)
+        background = background.subset(~dynamic)
     objects = aggregate_objects([inputs["object_points"][i] for i in ok], [inputs["object_boxes"][i] for i in ok],
                                 rigid_categories=params.rigid_categories)
     through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}

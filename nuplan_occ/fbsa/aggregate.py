@@ -24,13 +24,25 @@ RIGID_CATEGORIES = ("vehicle", "bicycle", "traffic_cone", "barrier", "czone_sign
 
 @dataclass
 class BackgroundAggregate:
-    """points (M, 3) and sensor_origins (M, 3) in the SCENE frame; frame_ids (M,) int32 index of the source
-    frame; T_global_from_scene (4, 4)."""
+    """points (M, 3) in the SCENE frame; frame_ids (M,) int32 index of each point's source frame;
+    frame_origins (F, 3): each source frame's sensor origin in the scene frame; T_global_from_scene (4, 4).
+    A point's sensor origin is its frame's (`sensor_origins`, made when asked), so the aggregate holds no
+    second point-sized array of coordinates."""
 
     points: np.ndarray
-    sensor_origins: np.ndarray
     frame_ids: np.ndarray
+    frame_origins: np.ndarray
     T_global_from_scene: np.ndarray
+
+    @property
+    def sensor_origins(self) -> np.ndarray:
+        """(M, 3) each point's sensor origin, scene frame."""
+        return self.frame_origins[self.frame_ids]
+
+    def subset(self, keep: np.ndarray) -> "BackgroundAggregate":
+        """The aggregate of the points selected by `keep` (a bool mask or indices over the points)."""
+        return BackgroundAggregate(self.points[keep], self.frame_ids[keep], self.frame_origins,
+                                   self.T_global_from_scene)
 
 
 def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -86,22 +98,21 @@ def aggregate_background(
     scene_from_global = invert_transform(T_gs)
     if crop is not None:
         crop_from_global = np.stack([invert_transform(T) for T in np.asarray(crop[0], np.float64).reshape(-1, 4, 4)])
-    agg = BackgroundAggregate(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int32), T_gs)
+    frame_origins = np.array([transform_points(scene_from_global @ poses[i], origins[i][None])[0]
+                              for i in range(F)]).reshape(F, 3)
+    agg = BackgroundAggregate(np.zeros((0, 3)), np.zeros(0, np.int32), frame_origins, T_gs)
     for start in range(0, F, AGGREGATE_CHUNK_FRAMES):
-        points, sensors, ids = [agg.points], [agg.sensor_origins], [agg.frame_ids]
+        points, ids = [agg.points], [agg.frame_ids]
         for i in range(start, min(F, start + AGGREGATE_CHUNK_FRAMES)):
             cloud = clouds_ego[i]
-            T = scene_from_global @ poses[i]
             if crop is not None:
                 cloud = cloud[within_boxes(cloud, crop_from_global @ poses[i], crop[1], crop[2])]
-            pts = transform_points(T, cloud)
+            pts = transform_points(scene_from_global @ poses[i], cloud)
             points.append(pts)
-            sensors.append(np.broadcast_to(transform_points(T, origins[i][None]), pts.shape))
             ids.append(np.full(len(pts), i, dtype=np.int32))
-        agg = BackgroundAggregate(np.vstack(points), np.vstack(sensors), np.concatenate(ids), T_gs)
+        agg = BackgroundAggregate(np.vstack(points), np.concatenate(ids), frame_origins, T_gs)
         if voxel_downsample_m:  # first point per voxel so far: the same points as downsampling all at once
-            keep = voxel_first_indices(agg.points, voxel_downsample_m)
-            agg = BackgroundAggregate(agg.points[keep], agg.sensor_origins[keep], agg.frame_ids[keep], T_gs)
+            agg = agg.subset(voxel_first_indices(agg.points, voxel_downsample_m))
     return agg
 
 
