@@ -152,4 +152,5 @@ STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "objec
               code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.box_kernels", "nuplan_occ.fbsa.carve",
                     "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split",
                     "nuplan_occ.fbsa.voxel_reduce",
-                    "nuplan_occ.voxel.visibility", "nuplan_occ.voxel.traversal"), doc=__doc__ or "")
+                    "nuplan_occ.voxel.visibility", "nuplan_occ.voxel.traversal", "nuplan_occ.voxel.frame_lookup"),
+              doc=__doc__ or "")

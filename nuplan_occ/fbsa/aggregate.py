@@ -15,7 +15,7 @@ import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.box_kernels import inside_any_frame_box
-from nuplan_occ.fbsa.voxel_reduce import first_of_each_key, voxel_keys
+from nuplan_occ.fbsa.voxel_reduce import KeySet, first_of_each_key, voxel_keys
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.io.types import Boxes
 
@@ -82,7 +82,7 @@ def aggregate_background(
     the points inside [lower, upper) of the ego frame of at least one crop pose (e.g. the output frames' grids
     plus a margin), before any downsampling.
     voxel_downsample_m: if set, keep only the first point (earliest frame) of every voxel of that size, with its
-    own sensor origin and frame id; applied as the aggregate is built (every AGGREGATE_CHUNK_FRAMES frames), so
+    own frame id; applied frame by frame as the aggregate is built (a hash set of the voxels kept so far), so
     memory follows the downsampled aggregate, not the raw points of the scene.
     """
     poses = np.asarray(poses, dtype=np.float64)
@@ -100,24 +100,18 @@ def aggregate_background(
         crop_from_global = np.stack([invert_transform(T) for T in np.asarray(crop[0], np.float64).reshape(-1, 4, 4)])
     frame_origins = np.array([transform_points(scene_from_global @ poses[i], origins[i][None])[0]
                               for i in range(F)]).reshape(F, 3)
-    agg = BackgroundAggregate(np.zeros((0, 3)), np.zeros(0, np.int32), frame_origins, T_gs)
-    for start in range(0, F, AGGREGATE_CHUNK_FRAMES):
-        points, ids = [agg.points], [agg.frame_ids]
-        for i in range(start, min(F, start + AGGREGATE_CHUNK_FRAMES)):
-            cloud = clouds_ego[i]
-            if crop is not None:
-                cloud = cloud[within_boxes(cloud, crop_from_global @ poses[i], crop[1], crop[2])]
-            pts = transform_points(scene_from_global @ poses[i], cloud)
-            points.append(pts)
-            ids.append(np.full(len(pts), i, dtype=np.int32))
-        agg = BackgroundAggregate(np.vstack(points), np.concatenate(ids), frame_origins, T_gs)
+    kept_voxels = KeySet()
+    points, ids = [np.zeros((0, 3))], [np.zeros(0, np.int32)]
+    for i in range(F):
+        cloud = clouds_ego[i]
+        if crop is not None:
+            cloud = cloud[within_boxes(cloud, crop_from_global @ poses[i], crop[1], crop[2])]
+        pts = transform_points(scene_from_global @ poses[i], cloud)
         if voxel_downsample_m:  # first point per voxel so far: the same points as downsampling all at once
-            agg = agg.subset(voxel_first_indices(agg.points, voxel_downsample_m))
-    return agg
-
-
-AGGREGATE_CHUNK_FRAMES = 16
-"""Frames added to the background aggregate between downsamplings: bounds the raw points held at once."""
+            pts = pts[kept_voxels.new(voxel_keys(pts, voxel_downsample_m))]
+        points.append(pts)
+        ids.append(np.full(len(pts), i, dtype=np.int32))
+    return BackgroundAggregate(np.vstack(points), np.concatenate(ids), frame_origins, T_gs)
 
 
 @dataclass

@@ -11,28 +11,51 @@ surface has returns there in most sweeps; a mover only while it passed), except 
 rays traverse the road's voxels, so points within `ground_clearance_m` of the local ground
 (the lowest aggregated point of their `ground_cell_m` xy cell, scene frame) are never removed.
 
-Frames: "scene" (the aggregate's frame, z up), "ego" per sweep. Units: metres. Pure numpy, deterministic.
+Frames: "scene" (the aggregate's frame, z up), "ego" per sweep. Units: metres. Deterministic; the points are
+looked up in each sweep's grid by a compiled loop (nuplan_occ.voxel.frame_lookup's rigid move, no temporaries).
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
-from nuplan_occ.fbsa.voxel_reduce import voxel_keys
-from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.voxel.frame_lookup import moved_voxel
+from nuplan_occ.voxel.traversal import grid_args
 from nuplan_occ.voxel.visibility import FREE, OCCUPIED, lidar_observation
 
 
+@numba.njit(cache=True, inline="always")
+def _cell(point, cell_m, first_x, first_y, columns):
+    """Flat index of the xy cell holding point (3,): row (x index - first_x), column (y index - first_y)."""
+    return (int(np.floor(point[0] / cell_m)) - first_x) * columns + int(np.floor(point[1] / cell_m)) - first_y
+
+
+@numba.njit(cache=True)
+def _height_above_lowest(points, cell_m, first_x, first_y, columns, lowest, out):
+    """out[n] = z of points[n] minus the lowest z of its cell_m xy cell (`_cell`; flat `lowest` starts at inf)."""
+    for n in range(points.shape[0]):
+        cell = _cell(points[n], cell_m, first_x, first_y, columns)
+        lowest[cell] = min(lowest[cell], points[n, 2])
+    for n in range(points.shape[0]):
+        out[n] = points[n, 2] - lowest[_cell(points[n], cell_m, first_x, first_y, columns)]
+
+
 def height_above_ground(points_scene: np.ndarray, cell_m: float) -> np.ndarray:
-    """(M,) height (m) of each point (M, 3) scene frame above the lowest point of its cell_m xy cell."""
-    columns = np.c_[points_scene[:, :2], np.zeros(len(points_scene))]  # z = 0: one packed key per xy cell
-    _, cell = np.unique(voxel_keys(columns, cell_m), return_inverse=True)
-    cell = cell.reshape(-1)
-    lowest = np.full(int(cell.max()) + 1 if len(cell) else 0, np.inf)
-    np.minimum.at(lowest, cell, points_scene[:, 2])
-    return points_scene[:, 2] - lowest[cell]
+    """(M,) height (m) of each point (M, 3) scene frame above the lowest point of its cell_m xy cell (cell
+    (i, j) = [i, i + 1) x [j, j + 1) times cell_m; one dense row of cells per x index over the points' extent)."""
+    points = np.ascontiguousarray(points_scene, dtype=np.float64)
+    out = np.zeros(len(points))
+    if not len(points):
+        return out
+    first = np.floor(points[:, :2].min(axis=0) / cell_m).astype(np.int64)
+    count = np.floor(points[:, :2].max(axis=0) / cell_m).astype(np.int64) - first + 1
+    lowest = np.full(int(count[0] * count[1]), np.inf)
+    _height_above_lowest(points, float(cell_m), int(first[0]), int(first[1]), int(count[1]), lowest, out)
+    return out
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
@@ -48,6 +71,24 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
             out[tuple(lo)] |= src[tuple(hi)]
             out[tuple(hi)] |= src[tuple(lo)]
     return out
+
+
+@numba.njit(cache=True)
+def _count_votes(points, candidates, ys, first, last, ego_y, reach, T_ego_from_scene, lower, voxel_size, shape,
+                 is_free, is_blocked, free, near_returns):
+    """For the candidates[first:last] (indices into points (M, 3), scene frame) whose y (ys, m) is within reach
+    of ego_y: the voxel of the sweep's grid holding the point (flat bool grids is_free / is_blocked) adds one
+    to near_returns[n] when blocked, else one to free[n] when free."""
+    for n in range(first, last):
+        if abs(ys[n] - ego_y) > reach:
+            continue
+        v = moved_voxel(points[candidates[n]], T_ego_from_scene, lower, voxel_size, shape)
+        if v < 0:
+            continue
+        if is_blocked[v]:
+            near_returns[n] += 1
+        elif is_free[v]:
+            free[n] += 1
 
 
 def seen_through(
@@ -85,17 +126,12 @@ count against removal, weighted by occupied_ratio (0 = not at all)."""
     reach = float(np.linalg.norm(np.maximum(np.abs(grid.lower), np.abs(grid.upper))))  # grid corner from the ego
     free = np.zeros(len(candidates), dtype=np.int32)
     near_returns = np.zeros(len(candidates), dtype=np.int32)
-    shape = np.array(grid.shape)
     for cloud, T_f in zip(sweeps_ego, T):
         obs = lidar_observation(cloud, origin_ego, grid)
         blocked = dilate(obs == OCCUPIED, protect_dilation) if protect_dilation > 0 else obs == OCCUPIED
-        ego_x, ego_y = T_f[0, 3], T_f[1, 3]  # only points within reach of the sweep's ego can be in its grid
+        ego_x = T_f[0, 3]  # only points within reach of the sweep's ego can be in its grid
         first, last = np.searchsorted(xs, ego_x - reach, "left"), np.searchsorted(xs, ego_x + reach, "right")
-        around = first + np.flatnonzero(np.abs(ys[first:last] - ego_y) <= reach)
-        idx, inside = grid.point_to_index(transform_points(invert_transform(T_f), points[candidates[around]]))
-        flat = (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2]
-        near = inside & blocked.ravel()[flat]
-        near_returns[around] += near
-        free[around] += inside & (obs.ravel()[flat] == FREE) & ~near
+        _count_votes(points, candidates, ys, int(first), int(last), float(T_f[1, 3]), reach, invert_transform(T_f),
+                     *grid_args(grid), (obs == FREE).ravel(), blocked.ravel(), free, near_returns)
     remove[candidates[(free >= min_votes) & (free > occupied_ratio * near_returns)]] = True
     return remove

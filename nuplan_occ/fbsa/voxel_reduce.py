@@ -43,28 +43,62 @@ def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def first_of_each_key(keys: np.ndarray) -> np.ndarray:
-    """Ascending (K,) indices of the first occurrence of every distinct value of keys (N,) int64 (an open
-    addressing hash table: linear time, the same answer as np.sort(np.unique(keys, return_index=True)[1]))."""
-    n = len(keys)
-    bits = 1
-    while (1 << bits) < 2 * n:
+def _insert_keys(table: np.ndarray, used: np.ndarray, keys: np.ndarray, first: np.ndarray) -> int:
+    """Insert keys (N,) int64 into the open-addressing hash set (table, used): a power-of-two number of key
+    slots and whether each holds one, at most half full after the call. Writes to `first` the ascending
+    indices of the keys that were not in it yet (each distinct new key once, at its first occurrence) and
+    returns how many."""
+    bits = 0
+    while (1 << bits) < len(table):
         bits += 1
-    mask = np.uint64((1 << bits) - 1)
+    mask = np.uint64(len(table) - 1)
     shift = np.uint64(64 - bits)
-    table = np.full(1 << bits, -1, np.int64)
-    first = np.empty(n, np.int64)
     count = 0
-    for i in range(n):
+    for i in range(len(keys)):
         slot = (np.uint64(keys[i]) * np.uint64(0x9E3779B97F4A7C15)) >> shift  # Fibonacci hashing
         while True:
-            j = table[slot]
-            if j < 0:
-                table[slot] = i
+            if not used[slot]:
+                used[slot] = True
+                table[slot] = keys[i]
                 first[count] = i
                 count += 1
                 break
-            if keys[j] == keys[i]:
+            if table[slot] == keys[i]:
                 break
             slot = (slot + np.uint64(1)) & mask
-    return first[:count]
+    return count
+
+
+def _table_size(keys: int) -> int:
+    """Power-of-two hash table length holding `keys` keys at most half full."""
+    return 1 << max(4, int(2 * keys - 1).bit_length())
+
+
+class KeySet:
+    """A growing set of int64 keys: `new(keys)` adds a batch and tells which of its keys it did not hold."""
+
+    def __init__(self, capacity: int = 0):
+        self.table = np.zeros(_table_size(capacity), np.int64)
+        self.used = np.zeros(len(self.table), bool)
+        self.count = 0
+
+    def new(self, keys: np.ndarray) -> np.ndarray:
+        """Ascending indices of the first occurrence of every value of keys (N,) int64 not in the set before;
+        those values are added."""
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        if _table_size(self.count + len(keys)) > len(self.table):
+            held = self.table[self.used]
+            self.table = np.zeros(_table_size(self.count + len(keys)), np.int64)
+            self.used = np.zeros(len(self.table), bool)
+            _insert_keys(self.table, self.used, held, np.empty(len(held), np.int64))
+        first = np.empty(len(keys), np.int64)
+        added = _insert_keys(self.table, self.used, keys, first)
+        self.count += added
+        return first[:added].copy()
+
+
+def first_of_each_key(keys: np.ndarray) -> np.ndarray:
+    """Ascending (K,) indices of the first occurrence of every distinct value of keys (N,) int64 (linear time,
+    the same answer as np.sort(np.unique(keys, return_index=True)[1]))."""
+    return KeySet(len(keys)).new(keys)
+

@@ -14,7 +14,7 @@ import numpy as np
 
 
 @numba.njit(cache=True)
-def _voxel(p, T, lower, voxel_size, shape):
+def moved_voxel(p, T, lower, voxel_size, shape):
     """Flat index of the voxel holding T p (-1 outside the grid or not finite)."""
     flat = 0
     for i in range(3):
@@ -30,7 +30,7 @@ def _voxel(p, T, lower, voxel_size, shape):
 def mark_points(points, T, lower, voxel_size, shape, out):
     """out[v] = True for the voxel v holding T p of every point p of points (N, 3); out: flat bool grid."""
     for n in range(points.shape[0]):
-        v = _voxel(points[n], T, lower, voxel_size, shape)
+        v = moved_voxel(points[n], T, lower, voxel_size, shape)
         if v >= 0:
             out[v] = True
 
@@ -42,7 +42,7 @@ def any_bit_set(points, transforms, bits, lower, voxel_size, shape, out):
     The frames are tried in order and a point stops at the first whose bit is set."""
     for n in range(points.shape[0]):
         for f in range(transforms.shape[0]):
-            v = _voxel(points[n], transforms[f], lower, voxel_size, shape)
+            v = moved_voxel(points[n], transforms[f], lower, voxel_size, shape)
             if v >= 0 and (bits[f, v >> 3] >> (7 - (v & 7))) & 1:
                 out[n] = True
                 break

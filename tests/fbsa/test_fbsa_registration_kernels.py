@@ -15,7 +15,7 @@ from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals, pca_normals
 from nuplan_occ.fbsa.point_to_plane import normal_equations
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
-from nuplan_occ.fbsa.voxel_reduce import first_of_each_key, voxel_centroids, voxel_keys
+from nuplan_occ.fbsa.voxel_reduce import KeySet, first_of_each_key, voxel_centroids, voxel_keys
 
 
 def test_tracked_nearest_equals_fresh_queries_while_points_move():
@@ -83,6 +83,9 @@ def test_voxel_reductions_against_brute_force():
     assert len(voxel_centroids(np.zeros((0, 3)), 0.5)) == 0 and len(voxel_first_indices(np.zeros((0, 3)), 0.5)) == 0
     rng_keys = np.r_[rng.integers(-2**62, 2**62, 3000), rng.integers(-20, 20, 3000)]  # hash collisions, repeats
     np.testing.assert_array_equal(first_of_each_key(rng_keys), np.sort(np.unique(rng_keys, return_index=True)[1]))
+    growing, bounds = KeySet(), [0, 7, 7, 500, 2100, 6000]  # batches that grow the table, and an empty one
+    batches = [bounds[i] + growing.new(rng_keys[bounds[i]:bounds[i + 1]]) for i in range(len(bounds) - 1)]
+    np.testing.assert_array_equal(np.concatenate(batches), first_of_each_key(rng_keys))
     with pytest.raises(FbsaInputError, match="beyond"):
         voxel_keys(np.array([[3e5, 0.0, 0.0]]), 0.2)
 
