@@ -64,8 +64,9 @@ class ReconstructParams:
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
     background = inputs["background_aggregate"]
-    background_surface = reconstruct(background.points, background.sensor_origins, method=params.method,
-                                     params=ReconParams(mask_distance=params.mask_distance_m), frame="scene")
+    background_surface = reconstruct(background.points, background.frame_origins, method=params.method,
+                                     params=ReconParams(mask_distance=params.mask_distance_m), frame="scene",
+                                     origin_ids=background.frame_ids)
     if params.ground_fill and len(background_surface.faces):
         vertices, faces = ground_fill_mesh(background.points, max_edge_m=params.ground_fill_max_edge_m)
         background_surface = Surface(np.vstack([background_surface.vertices, vertices]),

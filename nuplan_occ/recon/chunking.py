@@ -12,6 +12,7 @@ Points, normals and the returned vertices are metres in the caller's frame.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,9 +93,10 @@ class ChunkTiles:
         return np.sort(candidates[np.all((u >= lo - reach) & (u < hi + reach), axis=1)])
 
 
-def chunked_normals(tiles: ChunkTiles, sensor_origins: np.ndarray, knn: int) -> np.ndarray:
-    """(N, 3) unit normals of tiles.points facing their sensor origins (N, 3), estimated one
-    core at a time from the core's points and those within NORMAL_HALO_M of it."""
+def chunked_normals(tiles: ChunkTiles, origins_at: Callable[[np.ndarray], np.ndarray], knn: int) -> np.ndarray:
+    """(N, 3) unit normals of tiles.points facing their sensor origins (origins_at(indices): (k, 3) origins
+    of the points at those indices), estimated one core at a time from the core's points and those within
+    NORMAL_HALO_M of it."""
     normals = np.zeros(tiles.points.shape)
     halo = NORMAL_HALO_M / tiles.voxel_size
     for lo, hi in tiles.cores():
@@ -102,17 +104,17 @@ def chunked_normals(tiles: ChunkTiles, sensor_origins: np.ndarray, knn: int) -> 
         if not len(own):
             continue
         near = tiles.near(lo, hi, halo)
-        estimated = estimate_normals(tiles.points[near], sensor_origins[near], knn)
+        estimated = estimate_normals(tiles.points[near], origins_at(near), knn)
         normals[own] = estimated[np.searchsorted(near, own)]
     return normals
 
 
-def nksr_mesh(points: np.ndarray, sensor_origins: np.ndarray,
+def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray],
               params: ReconParams) -> tuple[np.ndarray, np.ndarray, list[SolveStats]]:
     """NKSR-lite mesh (vertices (V, 3) float64 metres, faces (F, 3) int64) and per-chunk stats of
-    points (N, 3) seen from sensor_origins (N, 3), metres in one frame."""
+    points (N, 3) seen from their sensor origins (origins_at(indices) -> (k, 3)), metres in one frame."""
     tiles = ChunkTiles.of(points, params)
-    normals = chunked_normals(tiles, sensor_origins, params.normal_knn)
+    normals = chunked_normals(tiles, origins_at, params.normal_knn)
     h = params.voxel_size
     margin = params.chunk_overlap / h
     mask = params.mask_distance / h

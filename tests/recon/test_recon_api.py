@@ -43,6 +43,20 @@ def test_bad_input_raises(points, origins, method):
         reconstruct(points, origins, method=method)
 
 
+def test_origins_given_per_sweep_give_the_surface_of_per_point_origins():
+    rng = np.random.default_rng(11)
+    pts, origins = curb_scan(rng, n=20000)
+    sweeps = np.unique(origins, axis=0, return_inverse=True)
+    per_point = reconstruct(pts, origins)
+    per_sweep = reconstruct(pts, sweeps[0], origin_ids=sweeps[1].ravel())
+    assert len(sweeps[0]) < 10 and len(per_point.faces) > 0
+    np.testing.assert_array_equal(per_sweep.vertices, per_point.vertices)
+    np.testing.assert_array_equal(per_sweep.faces, per_point.faces)
+    for table, ids in ((sweeps[0], sweeps[1].ravel()[:-1]), (sweeps[0], sweeps[1].ravel() + len(sweeps[0]))):
+        with pytest.raises(ReconError, match="origin_ids"):
+            reconstruct(pts, table, origin_ids=ids)
+
+
 def test_bad_params_raise():
     with pytest.raises(ReconError, match="voxel_size"):
         ReconParams(voxel_size=0.0)

@@ -35,7 +35,7 @@ def test_tiles_select_the_points_of_a_grown_core():
 def test_chunked_normals_match_whole_input_normals():
     points, origins = _street(np.random.default_rng(1))
     params = ReconParams(chunk_size=3.0)
-    chunked = chunked_normals(ChunkTiles.of(points, params), origins, params.normal_knn)
+    chunked = chunked_normals(ChunkTiles.of(points, params), lambda index: origins[index], params.normal_knn)
     whole = estimate_normals(points, origins, params.normal_knn)
     cosine = np.einsum("ij,ij->i", chunked, whole)
     assert np.mean(cosine > np.cos(np.radians(1.0))) > 0.999  # same neighbours, same sensor-facing sign
