@@ -89,8 +89,12 @@ class ChunkTiles:
         columns = len(self.bounds[1]) - 1
         candidates = np.concatenate([self.order[self.starts[i * columns + j]:self.starts[i * columns + j + 1]]
                                      for i in block[0] for j in block[1]] or [np.zeros(0, np.int64)])
-        u = (self.points[candidates, :2] - self.anchor[:2]) / self.voxel_size
-        return np.sort(candidates[np.all((u >= lo - reach) & (u < hi + reach), axis=1)])
+        return np.sort(candidates[self.within(candidates, lo, hi, reach)])
+
+    def within(self, indices: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: float) -> np.ndarray:
+        """bool per index: whether that point's xy (level-0 units) lies in [lo - reach, hi + reach)."""
+        u = (self.points[indices, :2] - self.anchor[:2]) / self.voxel_size
+        return np.all((u >= lo - reach) & (u < hi + reach), axis=1)
 
 
 def chunked_normals(tiles: ChunkTiles, origins_at: Callable[[np.ndarray], np.ndarray], knn: int) -> np.ndarray:
@@ -100,12 +104,10 @@ def chunked_normals(tiles: ChunkTiles, origins_at: Callable[[np.ndarray], np.nda
     normals = np.zeros(tiles.points.shape)
     halo = NORMAL_HALO_M / tiles.voxel_size
     for lo, hi in tiles.cores():
-        own = tiles.near(lo, hi, 0.0)
-        if not len(own):
-            continue
         near = tiles.near(lo, hi, halo)
-        estimated = estimate_normals(tiles.points[near], origins_at(near), knn)
-        normals[own] = estimated[np.searchsorted(near, own)]
+        own = tiles.within(near, lo, hi, 0.0)
+        if own.any():
+            normals[near[own]] = estimate_normals(tiles.points[near], origins_at(near), knn)[own]
     return normals
 
 
@@ -121,9 +123,9 @@ def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray]
     vertices, faces, stats = [], [], []
     n_vertices = 0
     for lo, hi in tiles.cores():
-        if not len(tiles.near(lo, hi, mask)):
-            continue
         near = tiles.near(lo, hi, margin)
+        if not tiles.within(near, lo, hi, min(mask, margin)).any():
+            continue
         field, chunk_stats = fit_field(points[near], normals[near], tiles.anchor, params)
         verts, tris = extract_mesh(field, cKDTree((points[near] - tiles.anchor) / h), mask, (lo, hi))
         stats.append(chunk_stats)
