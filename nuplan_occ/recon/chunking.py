@@ -126,8 +126,9 @@ def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray]
         near = tiles.near(lo, hi, margin)
         if not tiles.within(near, lo, hi, min(mask, margin)).any():
             continue
-        field, chunk_stats = fit_field(points[near], normals[near], tiles.anchor, params)
-        verts, tris = extract_mesh(field, cKDTree((points[near] - tiles.anchor) / h), mask, (lo, hi))
+        chunk = points[near]
+        field, chunk_stats = fit_field(chunk, normals[near], tiles.anchor, params)
+        verts, tris = extract_mesh(field, cKDTree((chunk - tiles.anchor) / h), mask, (lo, hi))
         stats.append(chunk_stats)
         vertices.append(tiles.anchor + verts * h)
         faces.append(tris + n_vertices)
