@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import EMPTY
+from nuplan_occ.voxel.voxelize import in_box
 
 
 class MetricsError(ValueError):
@@ -63,3 +65,25 @@ def ground_hole_rate(pred_semantics: np.ndarray, drivable_columns_mask: np.ndarr
     band = np.abs(z[None, None, :] - k[:, :, None]) <= tolerance_voxels
     has_ground = np.any((pred != EMPTY) & band, axis=2)
     return float(np.count_nonzero(cols & ~has_ground) / np.count_nonzero(cols))
+
+
+def unannotated_objects(instance: np.ndarray, centers: np.ndarray, yaws: np.ndarray, sizes: np.ndarray,
+                        grid: GridSpec = DEFAULT_GRID, grow_m: float = 1.0) -> np.ndarray:
+    """bool (X, Y, Z): the voxels of object instances (uint16 (X, Y, Z) instance ids, 0 = none, e.g. a
+    synthetic truth's) whose voxel centroid lies in none of the frame's annotated boxes (centers (K, 3),
+    yaws (K,) rad, sizes (K, 3) m, ego frame of the grid) grown by grow_m: objects the log has no box for
+    at that frame, which no method that reads the boxes can give a class."""
+    inst = np.asarray(instance)
+    index = np.argwhere(inst > 0)
+    out = np.zeros(inst.shape, dtype=bool)
+    if not len(index):
+        return out
+    ids, member = np.unique(inst[tuple(index.T)], return_inverse=True)
+    centres = grid.index_to_center(index)
+    centroids = np.stack([np.bincount(member, centres[:, a]) for a in range(3)], axis=1) / np.bincount(member)[:, None]
+    boxed = np.zeros(len(ids), dtype=bool)
+    for center, yaw, size in zip(np.reshape(centers, (-1, 3)), np.reshape(yaws, -1), np.reshape(sizes, (-1, 3))):
+        boxed |= in_box(centroids, center, float(yaw), size, grow_m)
+    unboxed = ids[~boxed]
+    out[tuple(index[np.isin(inst[tuple(index.T)], unboxed)].T)] = True
+    return out

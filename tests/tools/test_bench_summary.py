@@ -24,8 +24,11 @@ def test_pooled_vehicle_weighs_by_voxels_where_the_median_cannot() -> None:
     summed = np.zeros((N_IDS, N_IDS), np.int64)
     for pred, truth in frames:
         summed += confusion(pred, truth)
-    summary = summarize_metrics(metrics, [0, 0, 0], [0.0, 0.0, 0.0], summed)
+    without_big = np.zeros_like(summed)
+    without_big += confusion(*frames[0])
+    summary = summarize_metrics(metrics, [0, 0, 0], [0.0, 0.0, 0.0], summed, without_big)
     name = LABELS.names[VEHICLE]
     assert summary["per_class_iou"][name] == 0.0
     assert summary["pooled"]["per_class_iou"][name] == 1 / 129
     assert summary["pooled"]["miou"] == 1 / 129
+    assert summary["pooled_annotated"]["per_class_iou"][name] == 1.0  # the confusion it is given

@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
+from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import OTHER, ROAD, VEHICLE
-from nuplan_occ.voxel.metrics import MetricsError, ground_hole_rate, occupancy_metrics, trail_count
+from nuplan_occ.voxel.metrics import (MetricsError, ground_hole_rate, occupancy_metrics, trail_count,
+                                      unannotated_objects)
 
 
 def test_occupancy_metrics():
@@ -45,3 +47,22 @@ def test_trail_count_and_ground_holes():
     k[0, 2] = -1  # unknown ground: not counted
     assert ground_hole_rate(sem, drivable, k) == pytest.approx(1 / 7)
     assert ground_hole_rate(sem, drivable, k, tolerance_voxels=0) == pytest.approx(2 / 7)
+
+
+def test_unannotated_objects_are_the_instances_no_box_holds():
+    """Two objects on the default grid: a 2 x 1 m car at x = 10 m with a box yawed 90 degrees (its length
+    along y), and one at x = -10 m that the log does not annotate. Only the second one's voxels are flagged;
+    a box 2 m off the first object's centroid (beyond the 1 m growth) flags both."""
+    grid = DEFAULT_GRID
+    instance = np.zeros(grid.shape, np.uint16)
+    first = grid.point_to_index(np.array([[10.1, -0.9, 0.1], [10.9, 0.9, 0.9]]))[0]
+    second = grid.point_to_index(np.array([[-10.9, -0.4, 0.1], [-9.1, 0.4, 0.9]]))[0]
+    for (lo, hi), track in (((first[0], first[1]), 7), ((second[0], second[1]), 9)):
+        instance[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1] = track
+    size = np.array([[2.0, 1.0, 1.0]])
+    flagged = unannotated_objects(instance, np.array([[10.5, 0.0, 0.5]]), np.array([np.pi / 2]), size, grid)
+    assert np.array_equal(flagged, instance == 9)
+    missed = unannotated_objects(instance, np.array([[10.5, 3.2, 0.5]]), np.array([np.pi / 2]), size, grid)
+    assert np.array_equal(missed, instance > 0)
+    assert not unannotated_objects(np.zeros(grid.shape, np.uint16), np.zeros((0, 3)), np.zeros(0),
+                                   np.zeros((0, 3)), grid).any()
