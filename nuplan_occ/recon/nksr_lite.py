@@ -21,8 +21,8 @@ energy (in the spirit of the reference's optional free-space term, A.11.4, but a
 where the target t is the signed distance of a plane): without it the ridge term lets the field
 sag to slightly negative values beyond convex edges (a box seen from outside), and marching cubes
 then continues each face as a sheet up to the mask distance. Each voxel counts once, so the fit does not depend on the
-LiDAR density. The normal equations (G^T W G + lambda K) alpha = G^T W y are assembled with scipy
-SpGEMM and solved with Jacobi PCG on a torch CSR (int32) matrix.
+LiDAR density. The normal equations (G^T W G + lambda K) alpha = G^T W y are assembled by the
+numba kernels of `gram` and solved with Jacobi PCG on a torch CSR (int32) matrix.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import scipy.sparse as sp
 import torch
 
 from nuplan_occ.recon.basis import OFFSETS, gram_weights, stencil
+from nuplan_occ.recon.gram import gram
 from nuplan_occ.recon.hierarchy import VoxelHierarchy, unique_voxels
 from nuplan_occ.recon.params import ReconParams
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
@@ -142,7 +143,7 @@ def _normal_equations(blocks: list[tuple[sp.csr_matrix, np.ndarray]],
     targets = np.concatenate([values for _, values in blocks])
     blocks.clear()
     rhs = np.asarray(design.T @ targets, dtype=np.float32)
-    return (design.T @ design + ridge).tocsr(), rhs
+    return gram(design, ridge), rhs
 
 
 def _voxel_means(index: torch.Tensor, count: int, values: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:

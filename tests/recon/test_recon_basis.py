@@ -7,6 +7,7 @@ import scipy.sparse as sp
 import torch
 
 from nuplan_occ.recon.basis import gram_weights, stencil
+from nuplan_occ.recon.gram import gram
 from nuplan_occ.recon.hierarchy import VoxelHierarchy, dilate, unique_voxels
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
@@ -69,6 +70,19 @@ def test_jacobi_pcg_matches_direct_solve():
                         torch.from_numpy(rhs), 1e-10, 1000)
     assert result.relative_residual <= 1e-10
     assert np.allclose(result.x.numpy(), expected, atol=1e-8)
+
+
+def test_gram_equals_the_sparse_product_with_sorted_symmetric_rows():
+    rng = np.random.default_rng(4)
+    design = sp.random(400, 120, density=0.05, random_state=5, dtype=np.float32, format="csr")
+    design = design[rng.permutation(400)]  # unsorted rows are sorted by `gram`
+    ridge = sp.random(120, 120, density=0.03, random_state=6)
+    ridge = (ridge + ridge.T).tocsr()
+    expected = (design.T.astype(np.float64) @ design + ridge).toarray()
+    matrix = gram(design.copy(), ridge)
+    assert matrix.dtype == np.float32 and matrix.has_sorted_indices
+    assert np.allclose(matrix.toarray(), expected, rtol=1e-6, atol=1e-6)
+    assert (matrix != gram(design.copy(), ridge)).nnz == 0
 
 
 def test_lookup_inside_and_beyond_the_index_volume_agree_with_a_dictionary():
