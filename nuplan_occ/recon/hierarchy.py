@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from nuplan_occ.recon.basis import OFFSETS
@@ -112,3 +113,29 @@ class VoxelHierarchy:
             prev = levels[-1]
             levels.append(_level(coords, size, prev.offset + len(prev.coords)))
         return cls(levels=levels)
+
+
+@dataclass(frozen=True)
+class FlatLevels:
+    """The index volumes of a hierarchy's levels in flat arrays, as the numba kernels take them:
+    `volumes` every level's C-ordered volume one after another (int32 coefficient ids, -1 where
+    absent), `starts` (L,) where each begins, `shapes` and `los` (L, 3) int64 their extents and
+    lower voxels, `sizes` (L,) int64 the voxel sizes (level-0 units)."""
+
+    volumes: np.ndarray
+    starts: np.ndarray
+    shapes: np.ndarray
+    los: np.ndarray
+    sizes: np.ndarray
+
+    @classmethod
+    def of(cls, hierarchy: VoxelHierarchy) -> "FlatLevels":
+        levels = hierarchy.levels
+        lengths = [level.volume.numel() for level in levels]
+        return cls(
+            volumes=torch.cat([level.volume.reshape(-1) for level in levels]).numpy(),
+            starts=np.cumsum([0] + lengths[:-1]).astype(np.int64),
+            shapes=np.array([level.volume.shape for level in levels], dtype=np.int64),
+            los=torch.stack([level.lo for level in levels]).numpy().astype(np.int64),
+            sizes=np.array([level.size for level in levels], dtype=np.int64),
+        )

@@ -21,8 +21,8 @@ energy (in the spirit of the reference's optional free-space term, A.11.4, but a
 where the target t is the signed distance of a plane): without it the ridge term lets the field
 sag to slightly negative values beyond convex edges (a box seen from outside), and marching cubes
 then continues each face as a sheet up to the mask distance. Each voxel counts once, so the fit does not depend on the
-LiDAR density. The normal equations (G^T W G + lambda K) alpha = G^T W y are assembled with scipy
-SpGEMM and solved with Jacobi PCG on a torch CSR (int32) matrix.
+LiDAR density. The normal equations (G^T W G + lambda K) alpha = G^T W y are assembled by the
+numba kernels of `gram` and solved with Jacobi PCG on a torch CSR (int32) matrix.
 """
 
 from __future__ import annotations
@@ -34,12 +34,14 @@ import scipy.sparse as sp
 import torch
 
 from nuplan_occ.recon.basis import OFFSETS, gram_weights, stencil
-from nuplan_occ.recon.hierarchy import VoxelHierarchy, unique_voxels
+from nuplan_occ.recon.design import design_rows
+from nuplan_occ.recon.gram import gram
+from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, unique_voxels
 from nuplan_occ.recon.params import ReconParams
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
 BATCH = 25_000
-"""Query points per vectorised stencil batch (bounds the (B, 27, 3) temporaries per level)."""
+"""Query points per vectorised stencil batch of `ImplicitField.evaluate` (bounds its (B, 27, 3) temporaries)."""
 FRONT_OFFSETS = (1.0,)
 """Distances t (level-0 voxels) of the front-offset constraints f(ybar + t nbar) = t. One voxel:
 on the synthetic street, (1, 2) lost 1 % recall at 0.25 m (thin gaps under cars, curbs)."""
@@ -81,43 +83,6 @@ class SolveStats:
     relative_residual: float
 
 
-def _design_rows(
-    hierarchy: VoxelHierarchy, u: torch.Tensor, row_scale: torch.Tensor, gradient: bool
-) -> sp.csr_matrix:
-    """Rows sqrt(w) * basis values (K rows) or sqrt(w) * basis gradients (3K rows, x then y then z)
-    at query points u (K, 3) float64, level-0 units. Built as CSR directly (int32 column ids,
-    float32 values; a row's entries level by level), batch by batch."""
-    k = len(u)
-    blocks = 3 if gradient else 1
-    counts: list[list[torch.Tensor]] = [[] for _ in range(blocks)]
-    cols: list[list[torch.Tensor]] = [[] for _ in range(blocks)]
-    data: list[list[torch.Tensor]] = [[] for _ in range(blocks)]
-    for start in range(0, k, BATCH):
-        part = u[start:start + BATCH]
-        scale = row_scale[start:start + BATCH].unsqueeze(1)
-        ids, terms = [], []
-        for level in hierarchy.levels:
-            ijk, values, grads = stencil(part, level.size, gradient)
-            ids.append(level.ids(ijk))
-            terms.append(grads if gradient else values.unsqueeze(-1))
-        row_ids, row_terms = torch.cat(ids, dim=1), torch.cat(terms, dim=1)
-        keep = row_ids >= 0
-        kept_ids = row_ids[keep].to(torch.int32)
-        for block in range(blocks):
-            counts[block].append(keep.sum(dim=1))
-            cols[block].append(kept_ids)
-            data[block].append((row_terms[..., block] * scale)[keep].to(torch.float32))
-    per_row = torch.cat([torch.zeros(1, dtype=torch.int64)] + [c for block in counts for c in block])
-    indptr = torch.cumsum(per_row, dim=0)
-    if int(indptr[-1]) < 2**31:  # int32 column ids keep int32 row pointers (scipy shares one index type)
-        indptr = indptr.to(torch.int32)
-    return sp.csr_matrix(
-        (torch.cat([d for block in data for d in block]).numpy(),
-         torch.cat([c for block in cols for c in block]).numpy(), indptr.numpy()),
-        shape=(blocks * k, hierarchy.num_unknowns),
-    )
-
-
 def _ridge(hierarchy: VoxelHierarchy) -> sp.csr_matrix:
     """K: same-level 27-neighbour Gram matrix with entries B(c_i - c_j)."""
     weights = gram_weights(torch.float32)
@@ -142,7 +107,7 @@ def _normal_equations(blocks: list[tuple[sp.csr_matrix, np.ndarray]],
     targets = np.concatenate([values for _, values in blocks])
     blocks.clear()
     rhs = np.asarray(design.T @ targets, dtype=np.float32)
-    return (design.T @ design + ridge).tocsr(), rhs
+    return gram(design, ridge), rhs
 
 
 def _voxel_means(index: torch.Tensor, count: int, values: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
@@ -173,11 +138,12 @@ def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, param
     steps = torch.tensor(FRONT_OFFSETS, dtype=torch.float64)
     front = (centroid.unsqueeze(0) + steps[:, None, None] * unit_normal.unsqueeze(0)).reshape(-1, 3)
     front_scale = torch.sqrt(params.offset_weight * confidence).repeat(len(FRONT_OFFSETS))
+    levels, n = FlatLevels.of(hierarchy), hierarchy.num_unknowns
     blocks = [
-        (_design_rows(hierarchy, sub_centroid, value_scale, gradient=False), np.zeros(len(sub_centroid), np.float32)),
-        (_design_rows(hierarchy, centroid, grad_scale, gradient=True),
+        (design_rows(levels, n, sub_centroid, value_scale, gradient=False), np.zeros(len(sub_centroid), np.float32)),
+        (design_rows(levels, n, centroid, grad_scale, gradient=True),
          (grad_scale.unsqueeze(1) * unit_normal).T.reshape(-1).numpy().astype(np.float32)),
-        (_design_rows(hierarchy, front, front_scale, gradient=False),
+        (design_rows(levels, n, front, front_scale, gradient=False),
          (front_scale * steps.repeat_interleave(m0)).numpy().astype(np.float32)),
     ]
     matrix, rhs_values = _normal_equations(blocks, params.ridge_weight * _ridge(hierarchy))

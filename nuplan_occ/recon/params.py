@@ -40,7 +40,9 @@ class ReconParams:
       of a box (precision@0.25 0.70 -> 1.00) at no cost on the street scene.
       The value constraints of a level-0 voxel are the centroids of its occupied half-size
       sub-voxels (at most 8), weighted by their point counts (a Nystrom-style cap on N).
-    - pcg_tolerance / pcg_max_iter: Jacobi-PCG stop rule ||r|| <= tol ||b||.
+    - pcg_tolerance / pcg_max_iter: Jacobi-PCG stop rule ||r|| <= tol ||b||. 1e-3 rather than 1e-4:
+      on the 5 s bench scene it takes 58 % fewer iterations and changes 0.07 % of the occupied
+      0.25 m voxels of the background mesh.
     - chunk_size / chunk_overlap: xy tiles (m) solved independently, with this margin of extra
       points on every side; chunk_size <= 0 disables chunking.
 
@@ -61,7 +63,7 @@ class ReconParams:
     value_weight: float = 1.0
     gradient_weight: float = 1.0
     offset_weight: float = 0.1
-    pcg_tolerance: float = 1e-4
+    pcg_tolerance: float = 1e-3
     pcg_max_iter: int = 2000
     chunk_size: float = 50.0
     chunk_overlap: float = 2.5

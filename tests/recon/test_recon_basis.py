@@ -7,7 +7,9 @@ import scipy.sparse as sp
 import torch
 
 from nuplan_occ.recon.basis import gram_weights, stencil
-from nuplan_occ.recon.hierarchy import VoxelHierarchy, dilate, unique_voxels
+from nuplan_occ.recon.design import design_rows
+from nuplan_occ.recon.gram import gram
+from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, dilate, unique_voxels
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
 
@@ -69,6 +71,41 @@ def test_jacobi_pcg_matches_direct_solve():
                         torch.from_numpy(rhs), 1e-10, 1000)
     assert result.relative_residual <= 1e-10
     assert np.allclose(result.x.numpy(), expected, atol=1e-8)
+
+
+def test_gram_equals_the_sparse_product_with_sorted_symmetric_rows():
+    rng = np.random.default_rng(4)
+    design = sp.random(400, 120, density=0.05, random_state=5, dtype=np.float32, format="csr")
+    design = design[rng.permutation(400)]  # unsorted rows are sorted by `gram`
+    ridge = sp.random(120, 120, density=0.03, random_state=6)
+    ridge = (ridge + ridge.T).tocsr()
+    expected = (design.T.astype(np.float64) @ design + ridge).toarray()
+    matrix = gram(design.copy(), ridge)
+    assert matrix.dtype == np.float32 and matrix.has_sorted_indices
+    assert np.allclose(matrix.toarray(), expected, rtol=1e-6, atol=1e-6)
+    assert (matrix != gram(design.copy(), ridge)).nnz == 0
+
+
+def test_design_rows_hold_the_basis_terms_of_the_hierarchy():
+    rng = np.random.default_rng(7)
+    occupied = unique_voxels(torch.from_numpy(rng.integers(0, 10, (80, 3))))[0]
+    hierarchy = VoxelHierarchy.build(occupied, 3)
+    n = hierarchy.num_unknowns
+    u = torch.from_numpy(rng.uniform(-1, 11, (300, 3)))
+    scale = torch.from_numpy(rng.uniform(0.5, 2, 300))
+    expected_values, expected_grads = np.zeros((300, n)), np.zeros((3, 300, n))
+    for level in hierarchy.levels:
+        ijk, values, grads = stencil(u, level.size, gradient=True)
+        ids = level.ids(ijk)
+        rows, slots = torch.nonzero(ids >= 0, as_tuple=True)
+        np.add.at(expected_values, (rows.numpy(), ids[rows, slots].numpy()), values[rows, slots].numpy())
+        for axis in range(3):
+            np.add.at(expected_grads[axis], (rows.numpy(), ids[rows, slots].numpy()), grads[rows, slots, axis].numpy())
+    levels = FlatLevels.of(hierarchy)
+    value_rows = design_rows(levels, n, u, scale, gradient=False).toarray()
+    gradient_rows = design_rows(levels, n, u, scale, gradient=True).toarray()
+    assert np.allclose(value_rows, expected_values * scale.numpy()[:, None], atol=1e-6)
+    assert np.allclose(gradient_rows, (expected_grads * scale.numpy()[None, :, None]).reshape(900, n), atol=1e-6)
 
 
 def test_lookup_inside_and_beyond_the_index_volume_agree_with_a_dictionary():
