@@ -31,14 +31,25 @@ def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
 def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(K, 3) mean of the points (N, 3) of each occupied voxel, one row per voxel in key order."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
-    if not len(pts):
-        return np.zeros((0, 3))
-    keys = voxel_keys(pts, voxel_m)
-    order = np.argsort(keys, kind="stable")
-    ordered = keys[order]
-    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
-    counts = np.diff(np.r_[starts, len(ordered)])
-    return np.add.reduceat(pts[order], starts, axis=0) / counts[:, None]
+    index = KeyIndex(voxel_keys(pts, voxel_m))
+    return group_means(index.ids, pts, len(index.keys))[np.argsort(index.keys)]
+
+
+@numba.njit(cache=True)
+def group_means(ids: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
+    """(groups, d) mean of the rows of values (N, d) float64 with each id of ids (N,) int64 in [0, groups)
+    (summed in row order; a group without rows gives NaN)."""
+    sums = np.zeros((groups, values.shape[1]))
+    counts = np.zeros(groups)
+    for i in range(len(ids)):
+        g = ids[i]
+        counts[g] += 1.0
+        for d in range(values.shape[1]):
+            sums[g, d] += values[i, d]
+    for g in range(groups):
+        for d in range(values.shape[1]):
+            sums[g, d] /= counts[g]
+    return sums
 
 
 
@@ -102,3 +113,66 @@ def first_of_each_key(keys: np.ndarray) -> np.ndarray:
     the same answer as np.sort(np.unique(keys, return_index=True)[1]))."""
     return KeySet(len(keys)).new(keys)
 
+
+
+
+@numba.njit(cache=True)
+def _home_slot(key: np.int64, bits: int) -> np.uint64:
+    """Home slot of key in a table of 2^bits slots (Fibonacci hashing)."""
+    return (np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits)
+
+
+@numba.njit(cache=True)
+def _index_keys(keys: np.ndarray, table: np.ndarray, slot_id: np.ndarray, bits: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(ids (N,), first (K,)): the dense id of each key (N,) int64, ids numbered 0..K-1 in order of first
+    occurrence, and the index of each id's first occurrence; fills the open-addressing table (key per slot,
+    slot_id -1 = empty) of 2^bits > 2 N slots."""
+    mask = np.uint64(len(table) - 1)
+    ids = np.empty(len(keys), np.int64)
+    first = np.empty(len(keys), np.int64)
+    count = 0
+    for i in range(len(keys)):
+        slot = _home_slot(keys[i], bits)
+        while slot_id[slot] >= 0 and table[slot] != keys[i]:
+            slot = (slot + np.uint64(1)) & mask
+        if slot_id[slot] < 0:
+            table[slot] = keys[i]
+            slot_id[slot] = count
+            first[count] = i
+            count += 1
+        ids[i] = slot_id[slot]
+    return ids, first[:count].copy()
+
+
+@numba.njit(cache=True)
+def _find_keys(keys: np.ndarray, table: np.ndarray, slot_id: np.ndarray, bits: int) -> np.ndarray:
+    """(N,) id of each key (N,) int64 in the table filled by `_index_keys`, -1 where it is not there."""
+    mask = np.uint64(len(table) - 1)
+    ids = np.full(len(keys), -1, np.int64)
+    for i in range(len(keys)):
+        slot = _home_slot(keys[i], bits)
+        while slot_id[slot] >= 0:
+            if table[slot] == keys[i]:
+                ids[i] = slot_id[slot]
+                break
+            slot = (slot + np.uint64(1)) & mask
+    return ids
+
+
+class KeyIndex:
+    """Dense ids of the distinct values of keys (N,) int64: id g names the g-th distinct value in order of first
+    occurrence. `ids` (N,) the id of every key; `keys` (K,) the distinct values (keys[ids] == the input)."""
+
+    def __init__(self, keys: np.ndarray):
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        size = _table_size(len(keys))
+        self._bits = size.bit_length() - 1
+        self._table = np.zeros(size, np.int64)
+        self._slot_id = np.full(size, -1, np.int64)
+        self.ids, first = _index_keys(keys, self._table, self._slot_id, self._bits)
+        self.keys = keys[first]
+
+    def find(self, keys: np.ndarray) -> np.ndarray:
+        """(M,) id of each of keys (M,) int64, -1 for a value not indexed."""
+        return _find_keys(np.ascontiguousarray(keys, dtype=np.int64), self._table, self._slot_id, self._bits)

@@ -15,7 +15,7 @@ from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals, pca_normals
 from nuplan_occ.fbsa.point_to_plane import normal_equations
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
-from nuplan_occ.fbsa.voxel_reduce import KeySet, first_of_each_key, voxel_centroids, voxel_keys
+from nuplan_occ.fbsa.voxel_reduce import KeyIndex, KeySet, first_of_each_key, group_means, voxel_centroids, voxel_keys
 
 
 def test_tracked_nearest_equals_fresh_queries_while_points_move():
@@ -88,6 +88,20 @@ def test_voxel_reductions_against_brute_force():
     np.testing.assert_array_equal(np.concatenate(batches), first_of_each_key(rng_keys))
     with pytest.raises(FbsaInputError, match="beyond"):
         voxel_keys(np.array([[3e5, 0.0, 0.0]]), 0.2)
+
+
+def test_key_index_numbers_keys_in_order_of_first_occurrence():
+    rng = np.random.default_rng(4)
+    keys = np.r_[rng.integers(-2**62, 2**62, 3000), rng.integers(-20, 20, 3000)]  # hash collisions, repeats
+    index = KeyIndex(keys)
+    np.testing.assert_array_equal(index.keys, keys[first_of_each_key(keys)])
+    np.testing.assert_array_equal(index.keys[index.ids], keys)
+    others = np.r_[index.keys[::-1], 2**62 + 1]
+    np.testing.assert_array_equal(index.find(others), np.r_[np.arange(len(index.keys))[::-1], -1])
+    assert len(KeyIndex(np.zeros(0, np.int64)).keys) == 0
+    values = rng.normal(size=(len(keys), 3))
+    expected = np.stack([values[index.ids == g].mean(axis=0) for g in range(len(index.keys))])
+    np.testing.assert_allclose(group_means(index.ids, values, len(index.keys)), expected, atol=1e-12)
 
 
 def test_point_to_plane_normal_equations_match_the_dense_formula():
