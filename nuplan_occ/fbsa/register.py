@@ -5,10 +5,10 @@ Procedure (all in the "local" frame = the ego frame of logged frame 0, to keep c
 2. Its voxel-downsampled background is registered, coarse to fine, to a local map made of the last
    `window` trusted sweeps (point-to-plane Gauss-Newton ICP with a Tukey kernel, kd-tree (fbsa.knn)
    correspondences re-queried only where they can have changed (fbsa.tracked_nearest), PCA map normals
-   computed only for the map points matched (fbsa.plane_normals); deterministic, unlike Open3D's parallel
-   ICP). Sweeps and map are downsampled to voxel centroids on grids aligned with their frame's origin
-   (fbsa.voxel_reduce). This refines all six degrees of freedom, z, roll and pitch included, so that the
-   ground does not layer.
+   computed only for the map points matched (fbsa.plane_normals) and kept by map voxel for the next frames
+   (normal_reuse_frames); deterministic, unlike Open3D's parallel ICP). Sweeps and map are downsampled to
+   voxel centroids on grids aligned with their frame's origin (fbsa.voxel_reduce). This refines all six
+   degrees of freedom, z, roll and pitch included, so that the ground does not layer.
 3. The result is gated: too few points, empty map, low fitness, high RMSE, degenerate geometry (a direction
    without point-to-plane constraint, e.g. a featureless plane) or an implausibly large correction with respect
    to the prior rejects it; the frame then keeps its prior (the logged pose chain) and stays out of the map.
@@ -35,7 +35,7 @@ from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals
 from nuplan_occ.fbsa.point_to_plane import normal_equations
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
-from nuplan_occ.fbsa.voxel_reduce import voxel_centroids
+from nuplan_occ.fbsa.voxel_reduce import KeyIndex, group_means, voxel_centroids, voxel_keys
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points
 
 
@@ -51,7 +51,10 @@ class RegistrationParams:
     voxel_size_m: source sweep downsampling; map_voxel_m: local-map downsampling; window: number of previous
     trusted sweeps in the local map; max_correspondence_m: correspondence distances of the coarse-to-fine ICP
     stages (the first must exceed the expected prior error); tukey_ratio: Tukey kernel width as a fraction of the
-    stage's correspondence distance; max_iterations: per stage; normal_radius_m / normal_max_nn: map normals.
+    stage's correspondence distance; max_iterations: per stage; normal_radius_m / normal_max_nn: map normals;
+    normal_reuse_frames: a map voxel's normal, once computed, serves the following frames' maps for this many
+    frames before it is computed again from the current map (0: computed afresh for every frame). On the 5 s
+    city scene (20 Hz) 10 cuts the normals computed per frame about fourfold at no loss in pose error vs truth.
     Gates (on the last stage): min_points (after downsampling), min_fitness (share of source points with a
     correspondence), max_rmse_m (point-to-plane RMSE), min_conditioning (smallest / largest eigenvalue of the
     point-to-plane information, rotation scaled by the points' RMS range), max_translation_m and
@@ -69,6 +72,7 @@ class RegistrationParams:
     max_iterations: int = 30
     normal_radius_m: float = 1.0
     normal_max_nn: int = 20
+    normal_reuse_frames: int = 10
     min_points: int = 100
     min_fitness: float = 0.4
     max_rmse_m: float = 0.1
@@ -116,28 +120,58 @@ def plane_conditioning(points: np.ndarray, normals: np.ndarray, center: np.ndarr
 
 @dataclass
 class _Target:
-    """The local map as ICP target: points (m, 3) local frame, their kd-tree and their normals."""
+    """The local map as ICP target, built for frame `frame`: points (m, 3) local frame, their kd-tree and
+    normals, `voxels` indexing their voxel keys (point g is voxel g), and `born` (m,) the frame at which each
+    adopted normal was computed (-1 for normals not adopted)."""
 
     points: np.ndarray
     tree: KdTree
     normals: LazyNormals
+    voxels: KeyIndex
+    born: np.ndarray
+    frame: int
+
+    def normal_births(self) -> np.ndarray:
+        """(m,) the frame at which each known normal was computed (-1 where none is known)."""
+        return np.where(self.normals.known & (self.born < 0), self.frame, self.born)
 
 
 class _LocalMap:
-    """The last `window` trusted sweeps (local frame) and the normal-carrying cloud built from them."""
+    """The last `window` trusted sweeps (local frame, each with its map voxel keys) and the normal-carrying
+    cloud built from them: one point per map voxel (the mean of the sweeps' points in it)."""
 
     def __init__(self, params: RegistrationParams):
         self.params = params
-        self.sweeps: list[np.ndarray] = []
+        self.sweeps: list[tuple[np.ndarray, np.ndarray]] = []
+        self.previous: _Target | None = None
 
     def add(self, points_local: np.ndarray) -> None:
-        self.sweeps = (self.sweeps + [points_local])[-self.params.window:]
+        keys = voxel_keys(points_local, self.params.map_voxel_m)
+        self.sweeps = (self.sweeps + [(points_local, keys)])[-self.params.window:]
 
-    def target(self) -> _Target:
+    def target(self, frame: int) -> _Target:
+        """The map as target for registering frame `frame`; normals of the previous target's voxels computed
+        at most `normal_reuse_frames` frames before are adopted (see RegistrationParams)."""
         p = self.params
-        points = voxel_centroids(np.vstack(self.sweeps), p.map_voxel_m)
+        voxels = KeyIndex(np.concatenate([keys for _, keys in self.sweeps]))
+        points = group_means(voxels.ids, np.vstack([points for points, _ in self.sweeps]), len(voxels.keys))
         tree = KdTree(points)
-        return _Target(points, tree, LazyNormals(tree, p.normal_radius_m, p.normal_max_nn))
+        target = _Target(points, tree, LazyNormals(tree, p.normal_radius_m, p.normal_max_nn), voxels,
+                         np.full(len(points), -1, np.int64), frame)
+        if self.previous is not None:
+            self._adopt_normals(self.previous, target)
+        self.previous = target
+        return target
+
+    def _adopt_normals(self, previous: _Target, target: _Target) -> None:
+        """Give target the known normals of previous for the voxels both hold, if recent enough."""
+        births = previous.normal_births()
+        ids = previous.voxels.find(target.voxels.keys)
+        recent = previous.normals.known & (target.frame - births <= self.params.normal_reuse_frames)
+        points = np.flatnonzero(ids >= 0)
+        points = points[recent[ids[points]]]
+        target.normals.adopt(points, previous.normals.normals[ids[points]])
+        target.born[points] = births[ids[points]]
 
 
 def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: LazyNormals, nearest: TrackedNearest,
@@ -279,7 +313,7 @@ def refine_poses(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray,
         elif not local_map.sweeps:
             reasons[k] = "empty local map"
         else:
-            T, fitness[k], rmse[k], cond = _register(source, local_map.target(), prior, params)
+            T, fitness[k], rmse[k], cond = _register(source, local_map.target(k), prior, params)
             reasons[k] = _gate(prior, T, fitness[k], rmse[k], cond, params)
             accepted[k] = reasons[k] == ""
             if accepted[k]:
