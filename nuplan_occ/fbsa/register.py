@@ -42,6 +42,8 @@ from nuplan_occ.geometry import invert_transform, make_transform, transform_poin
 ANCHORS = ("fit", "first")
 NEAREST_MARGIN_M = 0.1
 """Search radius beyond the correspondence distance of each kd-tree query (TrackedNearest margin_m)."""
+CONVERGED_STEP = 1e-6
+"""An ICP stage stops after a Gauss-Newton step shorter than this (norm of rotation vector, rad, and translation, m)."""
 
 
 @dataclass
@@ -197,7 +199,7 @@ def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: LazyNor
         update[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
         update[:3, 3] = step[3:]
         T = update @ T
-        if np.linalg.norm(step) < 1e-7:
+        if np.linalg.norm(step) < CONVERGED_STEP:
             break
     moved = source @ T[:3, :3].T + T[:3, 3]
     match = nearest.query(moved, max_distance)
