@@ -4,9 +4,10 @@ Procedure (all in the "local" frame = the ego frame of logged frame 0, to keep c
 1. Frame k's prior is the refined pose of frame k-1 times the LOGGED relative motion k-1 -> k.
 2. Its voxel-downsampled background is registered, coarse to fine, to a local map made of the last
    `window` trusted sweeps (point-to-plane Gauss-Newton ICP with a Tukey kernel, kd-tree (fbsa.knn)
-   correspondences re-queried only where they can have changed (fbsa.tracked_nearest), PCA map normals
-   computed only for the map points matched (fbsa.plane_normals) and kept by map voxel for the next frames
-   (normal_reuse_frames); deterministic, unlike Open3D's parallel ICP). Sweeps and map are downsampled to
+   correspondences re-queried only where they can have changed (fbsa.tracked_nearest), map voxel means updated
+   as sweeps enter and leave the window, PCA map normals computed only for the map points matched
+   (fbsa.plane_normals) and kept by map voxel for the next frames (normal_reuse_frames); deterministic,
+   unlike Open3D's parallel ICP). Sweeps and map are downsampled to
    voxel centroids on grids aligned with their frame's origin (fbsa.voxel_reduce). This refines all six
    degrees of freedom, z, roll and pitch included, so that the ground does not layer.
 3. The result is gated: too few points, empty map, low fitness, high RMSE, degenerate geometry (a direction
@@ -35,13 +36,15 @@ from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals
 from nuplan_occ.fbsa.point_to_plane import normal_equations
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
-from nuplan_occ.fbsa.voxel_reduce import KeyIndex, group_means, voxel_centroids, voxel_keys
+from nuplan_occ.fbsa.voxel_reduce import KeyIndex, accumulate, voxel_centroids, voxel_keys
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points
 
 
 ANCHORS = ("fit", "first")
 NEAREST_MARGIN_M = 0.1
 """Search radius beyond the correspondence distance of each kd-tree query (TrackedNearest margin_m)."""
+COMPACT_RATIO = 3
+"""The local map re-numbers its voxels once it has named more than this many times the voxels it holds."""
 CONVERGED_STEP = 1e-6
 """An ICP stage stops after a Gauss-Newton step shorter than this (norm of rotation vector, rad, and translation, m)."""
 
@@ -123,57 +126,80 @@ def plane_conditioning(points: np.ndarray, normals: np.ndarray, center: np.ndarr
 @dataclass
 class _Target:
     """The local map as ICP target, built for frame `frame`: points (m, 3) local frame, their kd-tree and
-    normals, `voxels` indexing their voxel keys (point g is voxel g), and `born` (m,) the frame at which each
-    adopted normal was computed (-1 for normals not adopted)."""
+    normals, `voxels` (m,) the map voxel id of each point (_LocalMap.index) and `adopted` (m,) whether its
+    normal was known before (not computed for this frame)."""
 
     points: np.ndarray
     tree: KdTree
     normals: LazyNormals
-    voxels: KeyIndex
-    born: np.ndarray
+    voxels: np.ndarray
+    adopted: np.ndarray
     frame: int
-
-    def normal_births(self) -> np.ndarray:
-        """(m,) the frame at which each known normal was computed (-1 where none is known)."""
-        return np.where(self.normals.known & (self.born < 0), self.frame, self.born)
 
 
 class _LocalMap:
-    """The last `window` trusted sweeps (local frame, each with its map voxel keys) and the normal-carrying
-    cloud built from them: one point per map voxel (the mean of the sweeps' points in it)."""
+    """The last `window` trusted sweeps (local frame, each with the ids of its map voxels) and the
+    normal-carrying cloud made of them: one point per map voxel, the mean of the sweeps' points in it, kept
+    up to date as sweeps enter and leave (`sums`, `counts` per voxel id, 0 for ids not named yet). `index` names the map voxels (ids in
+    order of first appearance; re-numbered once it names far more than the window holds, `_compact`);
+    `normal` and `born` keep per voxel id the last normal computed and the frame it was computed for (-1: none)."""
 
     def __init__(self, params: RegistrationParams):
         self.params = params
         self.sweeps: list[tuple[np.ndarray, np.ndarray]] = []
-        self.previous: _Target | None = None
+        self.index = KeyIndex()
+        self.sums, self.counts = np.zeros((0, 3)), np.zeros(0)
+        self.normal, self.born = np.zeros((0, 3)), np.zeros(0, np.int64)
 
     def add(self, points_local: np.ndarray) -> None:
-        keys = voxel_keys(points_local, self.params.map_voxel_m)
-        self.sweeps = (self.sweeps + [(points_local, keys)])[-self.params.window:]
+        ids = self.index.add(voxel_keys(points_local, self.params.map_voxel_m))
+        self._grow(len(self.index.keys))
+        accumulate(ids, points_local, 1.0, self.sums, self.counts)
+        self.sweeps.append((points_local, ids))
+        if len(self.sweeps) > self.params.window:
+            accumulate(self.sweeps[0][1], self.sweeps[0][0], -1.0, self.sums, self.counts)
+            self.sweeps.pop(0)
+        if len(self.index.keys) > COMPACT_RATIO * np.count_nonzero(self.counts):
+            self._compact()
 
     def target(self, frame: int) -> _Target:
-        """The map as target for registering frame `frame`; normals of the previous target's voxels computed
-        at most `normal_reuse_frames` frames before are adopted (see RegistrationParams)."""
+        """The map as target for registering frame `frame`, with the normals computed at most
+        `normal_reuse_frames` frames before (see RegistrationParams)."""
         p = self.params
-        voxels = KeyIndex(np.concatenate([keys for _, keys in self.sweeps]))
-        points = group_means(voxels.ids, np.vstack([points for points, _ in self.sweeps]), len(voxels.keys))
+        voxels = np.flatnonzero(self.counts > 0)
+        voxels = voxels[np.argsort(self.index.keys[voxels])]  # key order: neighbours in space stay near in memory
+        points = self.sums[voxels] / self.counts[voxels, None]
         tree = KdTree(points)
-        target = _Target(points, tree, LazyNormals(tree, p.normal_radius_m, p.normal_max_nn), voxels,
-                         np.full(len(points), -1, np.int64), frame)
-        if self.previous is not None:
-            self._adopt_normals(self.previous, target)
-        self.previous = target
-        return target
+        born = self.born[voxels]
+        adopted = (born >= 0) & (frame - born <= p.normal_reuse_frames)
+        normals = LazyNormals(tree, p.normal_radius_m, p.normal_max_nn)
+        normals.adopt(np.flatnonzero(adopted), self.normal[voxels[adopted]])
+        return _Target(points, tree, normals, voxels, adopted, frame)
 
-    def _adopt_normals(self, previous: _Target, target: _Target) -> None:
-        """Give target the known normals of previous for the voxels both hold, if recent enough."""
-        births = previous.normal_births()
-        ids = previous.voxels.find(target.voxels.keys)
-        recent = previous.normals.known & (target.frame - births <= self.params.normal_reuse_frames)
-        points = np.flatnonzero(ids >= 0)
-        points = points[recent[ids[points]]]
-        target.normals.adopt(points, previous.normals.normals[ids[points]])
-        target.born[points] = births[ids[points]]
+    def keep_normals(self, target: _Target) -> None:
+        """Remember the normals computed for target's frame."""
+        computed = target.normals.known & ~target.adopted
+        self.normal[target.voxels[computed]] = target.normals.normals[computed]
+        self.born[target.voxels[computed]] = target.frame
+
+    def _grow(self, size: int) -> None:
+        """Per-voxel arrays for at least `size` voxel ids (grown by doubling; new ids empty)."""
+        if size <= len(self.counts):
+            return
+        grown = max(size, 2 * len(self.counts)) - len(self.counts)
+        self.sums, self.counts = np.vstack([self.sums, np.zeros((grown, 3))]), np.r_[self.counts, np.zeros(grown)]
+        self.normal = np.vstack([self.normal, np.zeros((grown, 3))])
+        self.born = np.r_[self.born, np.full(grown, -1, np.int64)]
+
+    def _compact(self) -> None:
+        """Re-number the map voxels to those the window holds (dropping the others' normals)."""
+        held = np.flatnonzero(self.counts > 0)
+        renumber = np.full(len(self.counts), -1, np.int64)
+        renumber[held] = np.arange(len(held))
+        self.index = KeyIndex(self.index.keys[held])
+        self.sums, self.counts = self.sums[held], self.counts[held]
+        self.normal, self.born = self.normal[held], self.born[held]
+        self.sweeps = [(points, renumber[ids]) for points, ids in self.sweeps]
 
 
 def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: LazyNormals, nearest: TrackedNearest,
@@ -315,7 +341,9 @@ def refine_poses(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray,
         elif not local_map.sweeps:
             reasons[k] = "empty local map"
         else:
-            T, fitness[k], rmse[k], cond = _register(source, local_map.target(k), prior, params)
+            target = local_map.target(k)
+            T, fitness[k], rmse[k], cond = _register(source, target, prior, params)
+            local_map.keep_normals(target)
             reasons[k] = _gate(prior, T, fitness[k], rmse[k], cond, params)
             accepted[k] = reasons[k] == ""
             if accepted[k]:

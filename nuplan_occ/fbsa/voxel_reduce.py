@@ -38,7 +38,7 @@ def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
 @numba.njit(cache=True)
 def group_means(ids: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
     """(groups, d) mean of the rows of values (N, d) float64 with each id of ids (N,) int64 in [0, groups)
-    (summed in row order; a group without rows gives NaN)."""
+    (summed in row order; every group must have a row)."""
     sums = np.zeros((groups, values.shape[1]))
     counts = np.zeros(groups)
     for i in range(len(ids)):
@@ -123,15 +123,16 @@ def _home_slot(key: np.int64, bits: int) -> np.uint64:
 
 
 @numba.njit(cache=True)
-def _index_keys(keys: np.ndarray, table: np.ndarray, slot_id: np.ndarray, bits: int
+def _index_keys(keys: np.ndarray, table: np.ndarray, slot_id: np.ndarray, bits: int, start: int
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """(ids (N,), first (K,)): the dense id of each key (N,) int64, ids numbered 0..K-1 in order of first
-    occurrence, and the index of each id's first occurrence; fills the open-addressing table (key per slot,
-    slot_id -1 = empty) of 2^bits > 2 N slots."""
+    """(ids (N,), first (K,)): the id of each key (N,) int64 in the open-addressing table (key per slot,
+    slot_id -1 = empty) of 2^bits slots, which holds ids 0..start-1 and must stay at most half full; keys not
+    in it get the ids start, start + 1, ... in order of first occurrence, `first` the index of each new id's
+    first occurrence."""
     mask = np.uint64(len(table) - 1)
     ids = np.empty(len(keys), np.int64)
     first = np.empty(len(keys), np.int64)
-    count = 0
+    count = start
     for i in range(len(keys)):
         slot = _home_slot(keys[i], bits)
         while slot_id[slot] >= 0 and table[slot] != keys[i]:
@@ -139,40 +140,49 @@ def _index_keys(keys: np.ndarray, table: np.ndarray, slot_id: np.ndarray, bits: 
         if slot_id[slot] < 0:
             table[slot] = keys[i]
             slot_id[slot] = count
-            first[count] = i
+            first[count - start] = i
             count += 1
         ids[i] = slot_id[slot]
-    return ids, first[:count].copy()
+    return ids, first[:count - start].copy()
 
 
 @numba.njit(cache=True)
-def _find_keys(keys: np.ndarray, table: np.ndarray, slot_id: np.ndarray, bits: int) -> np.ndarray:
-    """(N,) id of each key (N,) int64 in the table filled by `_index_keys`, -1 where it is not there."""
-    mask = np.uint64(len(table) - 1)
-    ids = np.full(len(keys), -1, np.int64)
-    for i in range(len(keys)):
-        slot = _home_slot(keys[i], bits)
-        while slot_id[slot] >= 0:
-            if table[slot] == keys[i]:
-                ids[i] = slot_id[slot]
-                break
-            slot = (slot + np.uint64(1)) & mask
-    return ids
+def accumulate(ids: np.ndarray, values: np.ndarray, sign: float, sums: np.ndarray, counts: np.ndarray) -> None:
+    """Add (sign 1) or take away (sign -1) the rows of values (N, d) to sums (G, d) and 1 to counts (G,) at the
+    ids (N,) int64 in [0, G), in row order; a group whose count returns to 0 gets sums of exactly 0 (no
+    rounding residue)."""
+    for i in range(len(ids)):
+        g = ids[i]
+        counts[g] += sign
+        for d in range(values.shape[1]):
+            sums[g, d] = sums[g, d] + sign * values[i, d] if counts[g] > 0 else 0.0
 
 
 class KeyIndex:
-    """Dense ids of the distinct values of keys (N,) int64: id g names the g-th distinct value in order of first
-    occurrence. `ids` (N,) the id of every key; `keys` (K,) the distinct values (keys[ids] == the input)."""
+    """Dense ids of distinct int64 keys: id g names the g-th distinct value in order of first occurrence, over
+    the keys (N,) given first and any `add`ed later. `ids` (N,) the id of every key given first; `keys` (K,)
+    the distinct values so far (keys[ids] == the keys given first)."""
 
-    def __init__(self, keys: np.ndarray):
+    def __init__(self, keys: np.ndarray | None = None):
+        keys = np.zeros(0, np.int64) if keys is None else keys
+        self.keys = np.zeros(0, np.int64)
+        self._allocate(len(keys))
+        self.ids = self.add(keys)
+
+    def add(self, keys: np.ndarray) -> np.ndarray:
+        """(M,) id of each of keys (M,) int64; values not indexed yet get new ids (the index grows)."""
         keys = np.ascontiguousarray(keys, dtype=np.int64)
-        size = _table_size(len(keys))
+        if _table_size(len(self.keys) + len(keys)) > len(self._table):
+            held = self.keys
+            self._allocate(len(held) + len(keys))
+            _index_keys(held, self._table, self._slot_id, self._bits, 0)
+        ids, first = _index_keys(keys, self._table, self._slot_id, self._bits, len(self.keys))
+        self.keys = np.concatenate([self.keys, keys[first]])
+        return ids
+
+    def _allocate(self, count: int) -> None:
+        """An empty table for `count` keys (the held keys must be inserted again)."""
+        size = _table_size(count)
         self._bits = size.bit_length() - 1
         self._table = np.zeros(size, np.int64)
         self._slot_id = np.full(size, -1, np.int64)
-        self.ids, first = _index_keys(keys, self._table, self._slot_id, self._bits)
-        self.keys = keys[first]
-
-    def find(self, keys: np.ndarray) -> np.ndarray:
-        """(M,) id of each of keys (M,) int64, -1 for a value not indexed."""
-        return _find_keys(np.ascontiguousarray(keys, dtype=np.int64), self._table, self._slot_id, self._bits)
