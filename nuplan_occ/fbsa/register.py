@@ -45,7 +45,7 @@ NEAREST_MARGIN_M = 0.1
 """Search radius beyond the correspondence distance of each kd-tree query (TrackedNearest margin_m)."""
 COMPACT_RATIO = 3
 """The local map re-numbers its voxels once it has named more than this many times the voxels it holds."""
-CONVERGED_STEP = 1e-6
+CONVERGED_STEP = 1e-5
 """An ICP stage stops after a Gauss-Newton step shorter than this (norm of rotation vector, rad, and translation, m)."""
 
 
