@@ -108,6 +108,12 @@ class LazyNormals:
             self.normals[missing] = pca_normals(self.tree.data, neighbours.reshape(len(missing), -1).astype(np.int64))
             self.known[missing] = True
 
+    def adopt(self, indices: np.ndarray, normals: np.ndarray) -> None:
+        """Take normals (n, 3) as known for the points `indices` (n,) (e.g. computed earlier for the same
+        surface); they are then not computed."""
+        self.normals[indices] = normals
+        self.known[indices] = True
+
     def of(self, indices: np.ndarray) -> np.ndarray:
         """(len(indices), 3) normals of the points `indices` (int, any order, repeats allowed)."""
         self.ensure(indices)

@@ -31,14 +31,25 @@ def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
 def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(K, 3) mean of the points (N, 3) of each occupied voxel, one row per voxel in key order."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
-    if not len(pts):
-        return np.zeros((0, 3))
-    keys = voxel_keys(pts, voxel_m)
-    order = np.argsort(keys, kind="stable")
-    ordered = keys[order]
-    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
-    counts = np.diff(np.r_[starts, len(ordered)])
-    return np.add.reduceat(pts[order], starts, axis=0) / counts[:, None]
+    index = KeyIndex(voxel_keys(pts, voxel_m))
+    return group_means(index.ids, pts, len(index.keys))[np.argsort(index.keys)]
+
+
+@numba.njit(cache=True)
+def group_means(ids: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
+    """(groups, d) mean of the rows of values (N, d) float64 with each id of ids (N,) int64 in [0, groups)
+    (summed in row order; every group must have a row)."""
+    sums = np.zeros((groups, values.shape[1]))
+    counts = np.zeros(groups)
+    for i in range(len(ids)):
+        g = ids[i]
+        counts[g] += 1.0
+        for d in range(values.shape[1]):
+            sums[g, d] += values[i, d]
+    for g in range(groups):
+        for d in range(values.shape[1]):
+            sums[g, d] /= counts[g]
+    return sums
 
 
 
@@ -102,3 +113,76 @@ def first_of_each_key(keys: np.ndarray) -> np.ndarray:
     the same answer as np.sort(np.unique(keys, return_index=True)[1]))."""
     return KeySet(len(keys)).new(keys)
 
+
+
+
+@numba.njit(cache=True)
+def _home_slot(key: np.int64, bits: int) -> np.uint64:
+    """Home slot of key in a table of 2^bits slots (Fibonacci hashing)."""
+    return (np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits)
+
+
+@numba.njit(cache=True)
+def _index_keys(keys: np.ndarray, table: np.ndarray, slot_id: np.ndarray, bits: int, start: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(ids (N,), first (K,)): the id of each key (N,) int64 in the open-addressing table (key per slot,
+    slot_id -1 = empty) of 2^bits slots, which holds ids 0..start-1 and must stay at most half full; keys not
+    in it get the ids start, start + 1, ... in order of first occurrence, `first` the index of each new id's
+    first occurrence."""
+    mask = np.uint64(len(table) - 1)
+    ids = np.empty(len(keys), np.int64)
+    first = np.empty(len(keys), np.int64)
+    count = start
+    for i in range(len(keys)):
+        slot = _home_slot(keys[i], bits)
+        while slot_id[slot] >= 0 and table[slot] != keys[i]:
+            slot = (slot + np.uint64(1)) & mask
+        if slot_id[slot] < 0:
+            table[slot] = keys[i]
+            slot_id[slot] = count
+            first[count - start] = i
+            count += 1
+        ids[i] = slot_id[slot]
+    return ids, first[:count - start].copy()
+
+
+@numba.njit(cache=True)
+def accumulate(ids: np.ndarray, values: np.ndarray, sign: float, sums: np.ndarray, counts: np.ndarray) -> None:
+    """Add (sign 1) or take away (sign -1) the rows of values (N, d) to sums (G, d) and 1 to counts (G,) at the
+    ids (N,) int64 in [0, G), in row order; a group whose count returns to 0 gets sums of exactly 0 (no
+    rounding residue)."""
+    for i in range(len(ids)):
+        g = ids[i]
+        counts[g] += sign
+        for d in range(values.shape[1]):
+            sums[g, d] = sums[g, d] + sign * values[i, d] if counts[g] > 0 else 0.0
+
+
+class KeyIndex:
+    """Dense ids of distinct int64 keys: id g names the g-th distinct value in order of first occurrence, over
+    the keys (N,) given first and any `add`ed later. `ids` (N,) the id of every key given first; `keys` (K,)
+    the distinct values so far (keys[ids] == the keys given first)."""
+
+    def __init__(self, keys: np.ndarray | None = None):
+        keys = np.zeros(0, np.int64) if keys is None else keys
+        self.keys = np.zeros(0, np.int64)
+        self._allocate(len(keys))
+        self.ids = self.add(keys)
+
+    def add(self, keys: np.ndarray) -> np.ndarray:
+        """(M,) id of each of keys (M,) int64; values not indexed yet get new ids (the index grows)."""
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        if _table_size(len(self.keys) + len(keys)) > len(self._table):
+            held = self.keys
+            self._allocate(len(held) + len(keys))
+            _index_keys(held, self._table, self._slot_id, self._bits, 0)
+        ids, first = _index_keys(keys, self._table, self._slot_id, self._bits, len(self.keys))
+        self.keys = np.concatenate([self.keys, keys[first]])
+        return ids
+
+    def _allocate(self, count: int) -> None:
+        """An empty table for `count` keys (the held keys must be inserted again)."""
+        size = _table_size(count)
+        self._bits = size.bit_length() - 1
+        self._table = np.zeros(size, np.int64)
+        self._slot_id = np.full(size, -1, np.int64)

@@ -15,7 +15,8 @@ from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import LazyNormals, pca_normals
 from nuplan_occ.fbsa.point_to_plane import normal_equations
 from nuplan_occ.fbsa.tracked_nearest import TrackedNearest
-from nuplan_occ.fbsa.voxel_reduce import KeySet, first_of_each_key, voxel_centroids, voxel_keys
+from nuplan_occ.fbsa.voxel_reduce import (KeyIndex, KeySet, accumulate, first_of_each_key, group_means, voxel_centroids,
+                                          voxel_keys)
 
 
 def test_tracked_nearest_equals_fresh_queries_while_points_move():
@@ -88,6 +89,29 @@ def test_voxel_reductions_against_brute_force():
     np.testing.assert_array_equal(np.concatenate(batches), first_of_each_key(rng_keys))
     with pytest.raises(FbsaInputError, match="beyond"):
         voxel_keys(np.array([[3e5, 0.0, 0.0]]), 0.2)
+
+
+def test_key_index_numbers_keys_in_order_of_first_occurrence():
+    rng = np.random.default_rng(4)
+    keys = np.r_[rng.integers(-2**62, 2**62, 3000), rng.integers(-20, 20, 3000)]  # hash collisions, repeats
+    index = KeyIndex(keys)
+    np.testing.assert_array_equal(index.keys, keys[first_of_each_key(keys)])
+    np.testing.assert_array_equal(index.keys[index.ids], keys)
+    assert len(KeyIndex(np.zeros(0, np.int64)).keys) == 0
+    values = rng.normal(size=(len(keys), 3))
+    expected = np.stack([values[index.ids == g].mean(axis=0) for g in range(len(index.keys))])
+    np.testing.assert_allclose(group_means(index.ids, values, len(index.keys)), expected, atol=1e-12)
+    growing, bounds = KeyIndex(), [0, 7, 7, 500, 2100, 6000]  # batches that grow the table, and an empty one
+    batches = [growing.add(keys[bounds[i]:bounds[i + 1]]) for i in range(len(bounds) - 1)]
+    np.testing.assert_array_equal(np.concatenate(batches), index.ids)
+    np.testing.assert_array_equal(growing.keys, index.keys)
+    sums, counts = np.zeros((len(index.keys), 3)), np.zeros(len(index.keys))
+    accumulate(index.ids, values, 1.0, sums, counts)
+    np.testing.assert_allclose(sums / counts[:, None], expected, atol=1e-12)
+    accumulate(index.ids[:3000], values[:3000], -1.0, sums, counts)  # take the first half away again
+    rest = np.isin(np.arange(len(counts)), index.ids[3000:])
+    np.testing.assert_array_equal(counts, np.bincount(index.ids[3000:], minlength=len(counts)))
+    assert not sums[~rest].any()  # emptied groups are exactly 0
 
 
 def test_point_to_plane_normal_equations_match_the_dense_formula():
