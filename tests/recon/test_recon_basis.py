@@ -86,6 +86,18 @@ def test_gram_equals_the_sparse_product_with_sorted_symmetric_rows():
     assert (matrix != gram(design.copy(), ridge)).nnz == 0
 
 
+def test_gram_groups_rows_sharing_their_columns_without_changing_the_product():
+    rng = np.random.default_rng(8)
+    lists = [np.sort(rng.choice(90, size=rng.integers(5, 30), replace=False)) for _ in range(25)]
+    picks = rng.integers(0, len(lists), 300)  # 300 rows over 25 column lists, in mixed order
+    rows = np.repeat(np.arange(300), [len(lists[p]) for p in picks])
+    cols = np.concatenate([lists[p] for p in picks])
+    design = sp.csr_matrix((rng.normal(size=len(cols)).astype(np.float32), (rows, cols)), shape=(300, 90))
+    ridge = sp.identity(90, format="csr") * 0.01
+    expected = (design.T.astype(np.float64) @ design + ridge).toarray()
+    assert np.allclose(gram(design.copy(), ridge).toarray(), expected, rtol=1e-6, atol=1e-6)
+
+
 def test_design_rows_hold_the_basis_terms_of_the_hierarchy():
     rng = np.random.default_rng(7)
     occupied = unique_voxels(torch.from_numpy(rng.integers(0, 10, (80, 3))))[0]
