@@ -52,10 +52,11 @@ def _row_groups(indptr: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np
 
 
 @numba.njit(cache=True)
-def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
-                n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Upper triangle of G^T G for G in CSR with sorted rows: (indptr (n + 1,) int64, column ids
-    int32 ascending per row, float32 values).
+def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, n: int, ridge_ptr: np.ndarray,
+                ridge_cols: np.ndarray, ridge_data: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Upper triangle of G^T G + ridge for G in CSR with sorted rows and the ridge in CSR (n x n): (indptr
+    (n + 1,) int64, column ids int32 ascending per row, float32 values); the value arrays are views of
+    buffers somewhat longer than the matrix.
 
     Rows sharing a column list (the design rows of queries in one level-0 cell) form a group whose
     contribution to matrix row i is first summed over the group's rows in a dense buffer, then added
@@ -110,6 +111,16 @@ def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
                     row_cols[count] = j
                     count += 1
                 accumulator[j] += out[b]
+        for k in range(ridge_ptr[i], ridge_ptr[i + 1]):
+            j = ridge_cols[k]
+            if j < i:
+                continue
+            if seen[j] != i:
+                seen[j] = i
+                accumulator[j] = 0.0
+                row_cols[count] = j
+                count += 1
+            accumulator[j] += ridge_data[k]
         start = out_ptr[i]
         while start + count > capacity:
             capacity *= 2
@@ -123,7 +134,7 @@ def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
             out_cols[start + m] = cols[m]
             out_data[start + m] = accumulator[cols[m]]
         out_ptr[i + 1] = start + count
-    return out_ptr, out_cols[:out_ptr[n]].copy(), out_data[:out_ptr[n]].copy()
+    return out_ptr, out_cols[:out_ptr[n]], out_data[:out_ptr[n]]
 
 
 @numba.njit(cache=True)
@@ -156,14 +167,23 @@ def _mirror(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> tuple[
     return full_ptr, full_cols, full_data
 
 
-def gram(design: sp.csr_matrix, ridge: sp.spmatrix) -> sp.csr_matrix:
-    """G^T G + ridge (float32 CSR, column ids ascending per row) of the float32 CSR design G
-    (n columns; its rows get sorted in place) and a symmetric n x n `ridge`."""
+def normal_equations(design: list[sp.csr_matrix], targets: np.ndarray,
+                     ridge: sp.spmatrix) -> tuple[sp.csr_matrix, np.ndarray]:
+    """(G^T G + ridge, G^T y) of the least-squares design G = design[0] (float32 CSR, n columns) with targets
+    y (float32), and a symmetric n x n `ridge`: float32 CSR with column ids ascending per row, and float32
+    (n,). The design is the largest array of a solve: it is taken out of its list and released before the
+    upper triangle is mirrored."""
+    design = design.pop()
+    rhs = np.asarray(design.T @ targets, dtype=np.float32)
     design.sort_indices()
     n = design.shape[1]
-    indptr, indices, data = _gram_upper(design.indptr.astype(np.int64), design.indices, design.data, n)
-    upper = sp.csr_matrix((data, indices, indptr), shape=(n, n)) + sp.triu(ridge, format="csr").astype(np.float32)
-    upper.sort_indices()
-    full_ptr, full_cols, full_data = _mirror(upper.indptr.astype(np.int64), upper.indices, upper.data)
+    ridge = sp.csr_matrix(ridge, dtype=np.float64)
+    ridge.sort_indices()
+    upper = _gram_upper(design.indptr.astype(np.int64), design.indices, design.data, n,
+                        ridge.indptr.astype(np.int64), ridge.indices, ridge.data)
+    del design
+    full_ptr, full_cols, full_data = _mirror(*upper)
+    del upper
     index_type = np.int32 if full_ptr[-1] < 2**31 else np.int64
-    return sp.csr_matrix((full_data, full_cols.astype(index_type), full_ptr.astype(index_type)), shape=(n, n))
+    return (sp.csr_matrix((full_data, full_cols.astype(index_type, copy=False), full_ptr.astype(index_type)),
+                          shape=(n, n), copy=False), rhs)
