@@ -111,7 +111,7 @@ def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, n: in
                     row_cols[count] = j
                     count += 1
                 accumulator[j] += out[b]
-        for k in range(ridge_ptr[i], ridge_ptr[i + 1]):
+        for k in range(ridge_ptr[i], ridge_ptr[i + 1]):  # written out as above: a shared helper doubled the time
             j = ridge_cols[k]
             if j < i:
                 continue
