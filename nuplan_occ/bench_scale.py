@@ -170,7 +170,7 @@ def run_scale_bench(out_dir: Path, seconds: list[float], baseline: str | None, l
     """Every scene length built by this code (and by `baseline` up to baseline_max_seconds); the report.
     Rows of other code versions already in bench/report-scale.json are kept (each row has its date), and so
     are its notes and its KISS-ICP measurement (a run that skips it keeps the last one)."""
-    cache = out_dir / "scale"
+    cache = out_dir.resolve() / "scale"  # absolute: the baseline's builds run from its exported source
     cache.mkdir(parents=True, exist_ok=True)
     here = Path(__file__).resolve().parents[1]
     this = code_label(here)

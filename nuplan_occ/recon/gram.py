@@ -2,9 +2,10 @@
 
 scipy's sparse-sparse product forms G^T G in two passes (a symbolic one for the sizes, then the
 values) after transposing G, and computes both triangles. Here the upper triangle is accumulated
-in one pass, each design row contributing the products of its entries at or right of the
-diagonal column (float64 sums, rounded to float32 once), and then mirrored. Sums run in a fixed
-order, so the result is identical run to run.
+in one pass (float64 sums, rounded to float32 once), and then mirrored. The design rows of queries in
+one level-0 cell share their column list; such rows are grouped, and a group's products at or right
+of the diagonal column are summed densely before they are scattered into the matrix row. Sums run in
+a fixed order, so the result is identical run to run.
 """
 
 from __future__ import annotations
@@ -18,34 +19,70 @@ INITIAL_ROW_CAPACITY = 96
 
 
 @numba.njit(cache=True)
-def _column_positions(indptr: np.ndarray, indices: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The design's entries column by column: (column pointers (n + 1,), row of each entry, its
-    position in the CSR arrays), rows ascending within a column."""
-    colptr = np.zeros(n + 1, dtype=np.int64)
-    for k in range(len(indices)):
-        colptr[indices[k] + 1] += 1
-    for col in range(n):
-        colptr[col + 1] += colptr[col]
-    fill = colptr[:-1].copy()
-    rows = np.empty(len(indices), dtype=np.int32)
-    positions = np.empty(len(indices), dtype=np.int64)
-    for row in range(len(indptr) - 1):
-        for k in range(indptr[row], indptr[row + 1]):
-            slot = fill[indices[k]]
-            rows[slot] = row
-            positions[slot] = k
-            fill[indices[k]] += 1
-    return colptr, rows, positions
+def _row_groups(indptr: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The design's rows ordered so that rows with identical column lists are adjacent, and the runs of
+    identical lists in that order: (row order (R,), group starts (G + 1,) into it). Rows are ordered by
+    a hash of their column list (stable); a hash collision only splits a run, never merges lists."""
+    rows = len(indptr) - 1
+    keys = np.empty(rows, dtype=np.uint64)
+    for r in range(rows):
+        h = np.uint64(1469598103934665603) ^ np.uint64(indptr[r + 1] - indptr[r])
+        for k in range(indptr[r], indptr[r + 1]):
+            h = (h ^ np.uint64(indices[k])) * np.uint64(1099511628211)
+        keys[r] = h
+    order = np.argsort(keys, kind="mergesort")
+    starts = np.empty(rows + 1, dtype=np.int64)
+    groups = 0
+    for position in range(rows):
+        r = order[position]
+        same = position > 0
+        if same:
+            q = order[position - 1]
+            length = indptr[r + 1] - indptr[r]
+            same = keys[q] == keys[r] and indptr[q + 1] - indptr[q] == length
+            k = 0
+            while same and k < length:
+                same = indices[indptr[q] + k] == indices[indptr[r] + k]
+                k += 1
+        if not same:
+            starts[groups] = position
+            groups += 1
+    starts[groups] = rows
+    return order, starts[:groups + 1].copy()
 
 
 @numba.njit(cache=True)
-def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
-                n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Upper triangle of G^T G for G in CSR with sorted rows: (indptr (n + 1,) int64, column ids
-    int32 ascending per row, float32 values)."""
-    colptr, rows, positions = _column_positions(indptr, indices, n)
+def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, n: int, ridge_ptr: np.ndarray,
+                ridge_cols: np.ndarray, ridge_data: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Upper triangle of G^T G + ridge for G in CSR with sorted rows and the ridge in CSR (n x n): (indptr
+    (n + 1,) int64, column ids int32 ascending per row, float32 values); the value arrays are views of
+    buffers somewhat longer than the matrix.
+
+    Rows sharing a column list (the design rows of queries in one level-0 cell) form a group whose
+    contribution to matrix row i is first summed over the group's rows in a dense buffer, then added
+    once per column: the scattered additions drop by the group's size."""
+    order, starts = _row_groups(indptr, indices)
+    groups = len(starts) - 1
+    colptr = np.zeros(n + 1, dtype=np.int64)
+    for g in range(groups):
+        first = order[starts[g]]
+        for k in range(indptr[first], indptr[first + 1]):
+            colptr[indices[k] + 1] += 1
+    for col in range(n):
+        colptr[col + 1] += colptr[col]
+    fill = colptr[:-1].copy()
+    member_group = np.empty(colptr[n], dtype=np.int64)
+    member_position = np.empty(colptr[n], dtype=np.int64)
+    for g in range(groups):
+        first = order[starts[g]]
+        for k in range(indptr[first], indptr[first + 1]):
+            slot = fill[indices[k]]
+            member_group[slot] = g
+            member_position[slot] = k - indptr[first]
+            fill[indices[k]] += 1
     accumulator = np.zeros(n, dtype=np.float64)
     seen = np.full(n, -1, dtype=np.int64)
+    buffer = np.zeros(max(n, 1), dtype=np.float64)
     capacity = max(INITIAL_ROW_CAPACITY * n, 1)
     out_cols = np.empty(capacity, dtype=np.int32)
     out_data = np.empty(capacity, dtype=np.float32)
@@ -54,16 +91,36 @@ def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
     for i in range(n):
         count = 0
         for e in range(colptr[i], colptr[i + 1]):
-            r, k = rows[e], positions[e]
-            a = np.float64(data[k])
-            for k2 in range(k, indptr[r + 1]):  # sorted row: columns >= i from position k on
-                j = indices[k2]
+            g, a = member_group[e], member_position[e]
+            first = order[starts[g]]
+            width = indptr[first + 1] - indptr[first] - a
+            out = buffer[:width]
+            out[:] = 0.0
+            for position in range(starts[g], starts[g + 1]):
+                head = indptr[order[position]] + a
+                row = data[head:head + width]
+                x = np.float64(row[0])
+                for b in range(width):
+                    out[b] += x * row[b]
+            cols_g = indices[indptr[first] + a:indptr[first] + a + width]
+            for b in range(width):
+                j = cols_g[b]
                 if seen[j] != i:
                     seen[j] = i
                     accumulator[j] = 0.0
                     row_cols[count] = j
                     count += 1
-                accumulator[j] += a * data[k2]
+                accumulator[j] += out[b]
+        for k in range(ridge_ptr[i], ridge_ptr[i + 1]):  # written out as above: a shared helper doubled the time
+            j = ridge_cols[k]
+            if j < i:
+                continue
+            if seen[j] != i:
+                seen[j] = i
+                accumulator[j] = 0.0
+                row_cols[count] = j
+                count += 1
+            accumulator[j] += ridge_data[k]
         start = out_ptr[i]
         while start + count > capacity:
             capacity *= 2
@@ -77,7 +134,7 @@ def _gram_upper(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
             out_cols[start + m] = cols[m]
             out_data[start + m] = accumulator[cols[m]]
         out_ptr[i + 1] = start + count
-    return out_ptr, out_cols[:out_ptr[n]].copy(), out_data[:out_ptr[n]].copy()
+    return out_ptr, out_cols[:out_ptr[n]], out_data[:out_ptr[n]]
 
 
 @numba.njit(cache=True)
@@ -110,14 +167,23 @@ def _mirror(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> tuple[
     return full_ptr, full_cols, full_data
 
 
-def gram(design: sp.csr_matrix, ridge: sp.spmatrix) -> sp.csr_matrix:
-    """G^T G + ridge (float32 CSR, column ids ascending per row) of the float32 CSR design G
-    (n columns; its rows get sorted in place) and a symmetric n x n `ridge`."""
+def normal_equations(design: list[sp.csr_matrix], targets: np.ndarray,
+                     ridge: sp.spmatrix) -> tuple[sp.csr_matrix, np.ndarray]:
+    """(G^T G + ridge, G^T y) of the least-squares design G = design[0] (float32 CSR, n columns) with targets
+    y (float32), and a symmetric n x n `ridge`: float32 CSR with column ids ascending per row, and float32
+    (n,). The design is the largest array of a solve: it is taken out of its list and released before the
+    upper triangle is mirrored."""
+    design = design.pop()
+    rhs = np.asarray(design.T @ targets, dtype=np.float32)
     design.sort_indices()
     n = design.shape[1]
-    indptr, indices, data = _gram_upper(design.indptr.astype(np.int64), design.indices, design.data, n)
-    upper = sp.csr_matrix((data, indices, indptr), shape=(n, n)) + sp.triu(ridge, format="csr").astype(np.float32)
-    upper.sort_indices()
-    full_ptr, full_cols, full_data = _mirror(upper.indptr.astype(np.int64), upper.indices, upper.data)
+    ridge = sp.csr_matrix(ridge, dtype=np.float64)
+    ridge.sort_indices()
+    upper = _gram_upper(design.indptr.astype(np.int64), design.indices, design.data, n,
+                        ridge.indptr.astype(np.int64), ridge.indices, ridge.data)
+    del design
+    full_ptr, full_cols, full_data = _mirror(*upper)
+    del upper
     index_type = np.int32 if full_ptr[-1] < 2**31 else np.int64
-    return sp.csr_matrix((full_data, full_cols.astype(index_type), full_ptr.astype(index_type)), shape=(n, n))
+    return (sp.csr_matrix((full_data, full_cols.astype(index_type, copy=False), full_ptr.astype(index_type)),
+                          shape=(n, n), copy=False), rhs)

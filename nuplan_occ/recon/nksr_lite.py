@@ -34,8 +34,8 @@ import scipy.sparse as sp
 import torch
 
 from nuplan_occ.recon.basis import OFFSETS, gram_weights, stencil
-from nuplan_occ.recon.design import design_rows
-from nuplan_occ.recon.gram import gram
+from nuplan_occ.recon.design import design_matrix
+from nuplan_occ.recon.gram import normal_equations
 from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, unique_voxels
 from nuplan_occ.recon.params import ReconParams
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
@@ -98,18 +98,6 @@ def _ridge(hierarchy: VoxelHierarchy) -> sp.csr_matrix:
     return sp.csr_matrix((torch.cat(data).numpy(), (torch.cat(rows).numpy(), torch.cat(cols).numpy())), shape=(n, n))
 
 
-def _normal_equations(blocks: list[tuple[sp.csr_matrix, np.ndarray]],
-                      ridge: sp.csr_matrix) -> tuple[sp.csr_matrix, np.ndarray]:
-    """(G^T G + ridge (CSR), G^T y float32) of the design G stacking the blocks' rows and the targets y
-    stacking theirs. The design is the solve's largest array: `blocks` is emptied once it is stacked,
-    and G^T y is taken before G^T G is formed."""
-    design = sp.vstack([rows for rows, _ in blocks], format="csr")
-    targets = np.concatenate([values for _, values in blocks])
-    blocks.clear()
-    rhs = np.asarray(design.T @ targets, dtype=np.float32)
-    return gram(design, ridge), rhs
-
-
 def _voxel_means(index: torch.Tensor, count: int, values: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
     """Per-group means of `values` (K, 3) grouped by `index` (K,) into `count` groups."""
     return torch.zeros(count, 3, dtype=values.dtype).index_add_(0, index, values) / counts.unsqueeze(1)
@@ -139,14 +127,12 @@ def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, param
     front = (centroid.unsqueeze(0) + steps[:, None, None] * unit_normal.unsqueeze(0)).reshape(-1, 3)
     front_scale = torch.sqrt(params.offset_weight * confidence).repeat(len(FRONT_OFFSETS))
     levels, n = FlatLevels.of(hierarchy), hierarchy.num_unknowns
-    blocks = [
-        (design_rows(levels, n, sub_centroid, value_scale, gradient=False), np.zeros(len(sub_centroid), np.float32)),
-        (design_rows(levels, n, centroid, grad_scale, gradient=True),
-         (grad_scale.unsqueeze(1) * unit_normal).T.reshape(-1).numpy().astype(np.float32)),
-        (design_rows(levels, n, front, front_scale, gradient=False),
-         (front_scale * steps.repeat_interleave(m0)).numpy().astype(np.float32)),
-    ]
-    matrix, rhs_values = _normal_equations(blocks, params.ridge_weight * _ridge(hierarchy))
+    targets = np.concatenate([np.zeros(len(sub_centroid), np.float32),
+                              (grad_scale.unsqueeze(1) * unit_normal).T.reshape(-1).numpy().astype(np.float32),
+                              (front_scale * steps.repeat_interleave(m0)).numpy().astype(np.float32)])
+    design = [design_matrix(levels, n, [(sub_centroid, value_scale, False), (centroid, grad_scale, True),
+                                        (front, front_scale, False)])]
+    matrix, rhs_values = normal_equations(design, targets, params.ridge_weight * _ridge(hierarchy))
     rhs = torch.from_numpy(rhs_values)
     diagonal = torch.from_numpy(matrix.diagonal().astype(np.float32))
     result = jacobi_pcg(to_torch_csr(matrix), diagonal, rhs, params.pcg_tolerance, params.pcg_max_iter)

@@ -30,9 +30,9 @@ def to_torch_csr(matrix: sp.spmatrix, dtype: torch.dtype = torch.float32) -> tor
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(
-            torch.from_numpy(csr.indptr.astype(np.int32)),
-            torch.from_numpy(csr.indices.astype(np.int32)),
-            torch.from_numpy(csr.data.astype(np.float32 if dtype == torch.float32 else np.float64)),
+            torch.from_numpy(csr.indptr.astype(np.int32, copy=False)),
+            torch.from_numpy(csr.indices.astype(np.int32, copy=False)),
+            torch.from_numpy(csr.data.astype(np.float32 if dtype == torch.float32 else np.float64, copy=False)),
             size=csr.shape,
             check_invariants=False,
         )

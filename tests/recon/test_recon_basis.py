@@ -7,8 +7,8 @@ import scipy.sparse as sp
 import torch
 
 from nuplan_occ.recon.basis import gram_weights, stencil
-from nuplan_occ.recon.design import design_rows
-from nuplan_occ.recon.gram import gram
+from nuplan_occ.recon.design import design_matrix
+from nuplan_occ.recon.gram import normal_equations
 from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, dilate, unique_voxels
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
@@ -73,20 +73,38 @@ def test_jacobi_pcg_matches_direct_solve():
     assert np.allclose(result.x.numpy(), expected, atol=1e-8)
 
 
-def test_gram_equals_the_sparse_product_with_sorted_symmetric_rows():
+def test_normal_equations_equal_the_sparse_products_with_sorted_symmetric_rows():
     rng = np.random.default_rng(4)
     design = sp.random(400, 120, density=0.05, random_state=5, dtype=np.float32, format="csr")
-    design = design[rng.permutation(400)]  # unsorted rows are sorted by `gram`
+    design = design[rng.permutation(400)]  # unsorted rows are sorted by `normal_equations`
+    targets = rng.normal(size=400).astype(np.float32)
     ridge = sp.random(120, 120, density=0.03, random_state=6)
     ridge = (ridge + ridge.T).tocsr()
     expected = (design.T.astype(np.float64) @ design + ridge).toarray()
-    matrix = gram(design.copy(), ridge)
+    holder = [design.copy()]
+    matrix, rhs = normal_equations(holder, targets, ridge)
+    assert holder == []
     assert matrix.dtype == np.float32 and matrix.has_sorted_indices
     assert np.allclose(matrix.toarray(), expected, rtol=1e-6, atol=1e-6)
-    assert (matrix != gram(design.copy(), ridge)).nnz == 0
+    assert np.allclose(rhs, design.T.astype(np.float64) @ targets, rtol=1e-5, atol=1e-5)
+    again, _ = normal_equations([design.copy()], targets, ridge)
+    assert (matrix != again).nnz == 0
 
 
-def test_design_rows_hold_the_basis_terms_of_the_hierarchy():
+def test_normal_equations_group_rows_sharing_their_columns_without_changing_the_product():
+    rng = np.random.default_rng(8)
+    lists = [np.sort(rng.choice(90, size=rng.integers(5, 30), replace=False)) for _ in range(25)]
+    picks = rng.integers(0, len(lists), 300)  # 300 rows over 25 column lists, in mixed order
+    rows = np.repeat(np.arange(300), [len(lists[p]) for p in picks])
+    cols = np.concatenate([lists[p] for p in picks])
+    design = sp.csr_matrix((rng.normal(size=len(cols)).astype(np.float32), (rows, cols)), shape=(300, 90))
+    ridge = sp.identity(90, format="csr") * 0.01
+    expected = (design.T.astype(np.float64) @ design + ridge).toarray()
+    matrix, _ = normal_equations([design], np.zeros(300, np.float32), ridge)
+    assert np.allclose(matrix.toarray(), expected, rtol=1e-6, atol=1e-6)
+
+
+def test_design_matrix_holds_the_basis_terms_of_the_hierarchy_part_after_part():
     rng = np.random.default_rng(7)
     occupied = unique_voxels(torch.from_numpy(rng.integers(0, 10, (80, 3))))[0]
     hierarchy = VoxelHierarchy.build(occupied, 3)
@@ -102,10 +120,12 @@ def test_design_rows_hold_the_basis_terms_of_the_hierarchy():
         for axis in range(3):
             np.add.at(expected_grads[axis], (rows.numpy(), ids[rows, slots].numpy()), grads[rows, slots, axis].numpy())
     levels = FlatLevels.of(hierarchy)
-    value_rows = design_rows(levels, n, u, scale, gradient=False).toarray()
-    gradient_rows = design_rows(levels, n, u, scale, gradient=True).toarray()
-    assert np.allclose(value_rows, expected_values * scale.numpy()[:, None], atol=1e-6)
-    assert np.allclose(gradient_rows, (expected_grads * scale.numpy()[None, :, None]).reshape(900, n), atol=1e-6)
+    rows = design_matrix(levels, n, [(u, scale, False), (u[:100], scale[:100], True), (u, scale, False)]).toarray()
+    value_rows = expected_values * scale.numpy()[:, None]
+    assert np.allclose(rows[:300], value_rows, atol=1e-6)
+    assert np.allclose(rows[300:600], (expected_grads[:, :100] * scale.numpy()[None, :100, None]).reshape(300, n),
+                       atol=1e-6)
+    assert np.allclose(rows[600:], value_rows, atol=1e-6)
 
 
 def test_lookup_inside_and_beyond_the_index_volume_agree_with_a_dictionary():
