@@ -1,8 +1,8 @@
 """Stage 2, filter (FBSA): statistical outlier removal on each sweep's background points.
 
 Inputs: `scene`, `splits`. Outputs: `background` (sequence of (n, 3) ego-frame points per sweep, None for
-failed sweeps; an item output: later stages read one sweep per access) and `outliers_removed` (count per
-sweep).
+failed sweeps; an item output, made sweep by sweep as the cache stores it, read back one sweep per access
+by later stages) and `outliers_removed` (count per sweep, complete once the cache has stored `background`).
 """
 
 from __future__ import annotations
@@ -29,19 +29,22 @@ class FilterParams:
 
 
 def run(inputs: dict, params: FilterParams) -> dict:
-    background, removed = [], []
-    for split in inputs["splits"]:
-        if split is None:
-            background.append(None)
-            removed.append(0)
-            continue
-        points = split.background.xyz
-        keep = remove_statistical_outliers(points, method=params.method, nb_neighbors=params.nb_neighbors,
-                                           std_ratio=params.std_ratio, k_sigma=params.k_sigma,
-                                           origin=inputs["scene"].sensor_origin_ego)
-        background.append(points[keep])
-        removed.append(int((~keep).sum()))
-    return {"background": background, "outliers_removed": removed}
+    removed: list[int] = []
+
+    def filtered():
+        for split in inputs["splits"]:
+            if split is None:
+                removed.append(0)
+                yield None
+                continue
+            points = split.background.xyz
+            keep = remove_statistical_outliers(points, method=params.method, nb_neighbors=params.nb_neighbors,
+                                               std_ratio=params.std_ratio, k_sigma=params.k_sigma,
+                                               origin=inputs["scene"].sensor_origin_ego)
+            removed.append(int((~keep).sum()))
+            yield points[keep]
+
+    return {"background": filtered(), "outliers_removed": removed}
 
 
 STAGE = Stage("filter", inputs=("scene", "splits"), outputs=("background", "outliers_removed"),

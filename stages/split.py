@@ -2,7 +2,7 @@
 points outside every enlarged box and outside the ego vehicle; the margin shell goes to neither.
 
 Inputs: `scene`. Outputs: `splits` (sequence aligned with scene.sweeps, None for failed sweeps; an item
-output: the filter reads one sweep per access).
+output, made sweep by sweep as the cache stores it and read back one sweep per access by the filter).
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from nuplan_occ.fbsa.split import split_frame
 from nuplan_occ.pipeline.stage import Stage
+from nuplan_occ.sequences import MappedSequence
 
 
 @dataclass(frozen=True)
@@ -24,13 +25,14 @@ class SplitParams:
 
 def run(inputs: dict, params: SplitParams) -> dict:
     scene = inputs["scene"]
-    splits = [
-        None if not sweep.has_cloud else split_frame(
-            sweep.cloud, sweep.boxes, scene.sensor_origin_ego, margin=params.box_margin,
-            ego_margin_m=params.ego_margin_m)
-        for sweep in scene.sweeps
-    ]
-    return {"splits": splits}
+
+    def split(sweep):
+        if not sweep.has_cloud:
+            return None
+        return split_frame(sweep.cloud, sweep.boxes, scene.sensor_origin_ego, margin=params.box_margin,
+                           ego_margin_m=params.ego_margin_m)
+
+    return {"splits": MappedSequence(scene.sweeps, split)}
 
 
 STAGE = Stage("split", inputs=("scene",), outputs=("splits",), item_outputs=("splits",), params_type=SplitParams,

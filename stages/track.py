@@ -71,7 +71,7 @@ def snapped_static_poses(scene, poses: np.ndarray, static: dict[str, tuple[list[
     """track -> (4,) global pose (x, y, z, yaw) of each static track's box moved in x, y onto the points near
     it in its sweeps (fbsa.box_snap; points taken to the global frame with the refined poses).
     static: track -> (its sweep positions, its (4,) global pose, its box size (3,)). One pass over the
-    sweeps, each read once."""
+    sweeps, each read once; only the points within the snap's height band (BoxSnapParams.z_band_m) are kept."""
     gathered: dict[str, list[np.ndarray]] = {track: [] for track in static}
     R = {track: yaw_matrix(float(pose[3])) for track, (_, pose, _) in static.items()}  # box from global axes
     tracks_at: dict[int, list[str]] = {}
@@ -86,7 +86,8 @@ def snapped_static_poses(scene, poses: np.ndarray, static: dict[str, tuple[list[
             reach = params.radius_m + float(np.max(size[:2]))  # a square around the box, wider than needed
             center_ego = transform_points(T_ego_from_global, pose[None, :3])[0]
             near = within_square(xyz, float(center_ego[0]), float(center_ego[1]), reach)
-            gathered[track].append((transform_points(poses[i], xyz[near]) - pose[:3]) @ R[track])
+            local = (transform_points(poses[i], xyz[near]) - pose[:3]) @ R[track]
+            gathered[track].append(local[np.abs(local[:, 2]) <= float(size[2]) / 2.0 + params.z_band_m])
     snapped = {}
     for track, (_, pose, size) in static.items():
         shift = snap_shift(np.vstack(gathered[track]), size, params)

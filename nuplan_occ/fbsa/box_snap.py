@@ -61,6 +61,19 @@ def object_points(points_box: np.ndarray, size: np.ndarray, params: BoxSnapParam
     return points[keep, :2]
 
 
+SHIFT_BLOCK_CELLS = 1 << 22
+"""Shift x point pairs compared at once: bounds the memory of a count over a whole scene's points."""
+
+
+def points_in_shifted_footprints(xy: np.ndarray, shifts: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """(S,) int: for each shift (S, 2), how many of the points xy (n, 2) lie in the footprint [-half, half]
+    moved by it (box frame, m), taking the shifts a block at a time."""
+    block = max(1, SHIFT_BLOCK_CELLS // max(len(xy), 1))
+    return np.concatenate([
+        np.all(np.abs(xy[None, :, :] - shifts[start:start + block, None, :]) <= half, axis=2).sum(axis=1)
+        for start in range(0, len(shifts), block)])
+
+
 def snap_shift(points_box: np.ndarray, size: np.ndarray, params: BoxSnapParams = BoxSnapParams()) -> np.ndarray:
     """(2,) shift (dx, dy) in the box frame (m) that moves the box footprint onto the object's points
     (module docstring); zeros when fewer than min_points object points are near."""
@@ -70,8 +83,7 @@ def snap_shift(points_box: np.ndarray, size: np.ndarray, params: BoxSnapParams =
     steps = np.arange(-params.radius_m, params.radius_m + params.step_m / 2, params.step_m)
     shifts = np.stack(np.meshgrid(steps, steps, indexing="ij"), axis=-1).reshape(-1, 2)
     shifts = shifts[np.linalg.norm(shifts, axis=1) <= params.radius_m + 1e-9]
-    half = np.asarray(size[:2], dtype=np.float64) / 2.0
-    inside = np.all(np.abs(xy[None, :, :] - shifts[:, None, :]) <= half, axis=2).sum(axis=1)
+    inside = points_in_shifted_footprints(xy, shifts, np.asarray(size[:2], dtype=np.float64) / 2.0)
     at_rest = inside[np.argmin(np.linalg.norm(shifts, axis=1))]
     if inside.max() < params.min_points or at_rest >= params.keep_ratio * inside.max():
         return np.zeros(2)

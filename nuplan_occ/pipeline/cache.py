@@ -145,8 +145,9 @@ class StageCache:
     def put(self, stage: str, key: str, outputs: dict[str, Any],
             item_outputs: tuple[str, ...] = ()) -> dict[str, StoredItems]:
         """Store outputs atomically, pickled straight into the zstd stream (an entry of several GB is never
-        held in memory as a whole, pickled or compressed). The outputs named in item_outputs (sequences) are
-        stored one element per frame, before the entry that points to them; returns their readers."""
+        held in memory as a whole, pickled or compressed). The outputs named in item_outputs (iterables, iterated
+        once) are stored one element per frame, before the entry that points to them, so the other outputs may
+        be filled while they are iterated; returns their readers."""
         stored = dict(outputs)
         for name in item_outputs:
             bounds = [0]

@@ -114,18 +114,20 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
             return outputs
         if stage.per_frame:
             outputs = {STREAM_OUTPUT: stream_frames()}
+            if stage.cache:
+                cache.put(stage.name, keys[stage.name], outputs)
         else:
             inputs = {name: obtain(name) for name in stage.inputs}
             if events:
                 events((task.log_name, task.scene_name, stage.name))
             started = time.perf_counter()
             outputs = stage.run(inputs, params_of(stage))
+            if stage.cache:  # item outputs may be one-pass iterables made while the cache stores them
+                outputs.update(cache.put(stage.name, keys[stage.name], outputs, stage.item_outputs))
             timed(stage, time.perf_counter() - started)
             del inputs
         if result is not None and stage.cache:
             result.computed.append(stage.name)
-        if stage.cache:
-            outputs.update(cache.put(stage.name, keys[stage.name], outputs, stage.item_outputs))
         finished(stage)
         return outputs
 

@@ -23,10 +23,13 @@ class Stage:
     stages, or the scene's source data for the first stage); it returns a dict with exactly `outputs`.
     code: modules whose source is part of this stage's cache key (a change in them reruns the stage).
     cache: False for stages whose outputs are cheaper to recompute than to store (e.g. reading input).
-    item_outputs: outputs that are per-sweep lists (aligned with scene.sweeps): the cache stores them one
+    item_outputs: outputs that are per-sweep sequences (aligned with scene.sweeps): the cache stores them one
     element at a time and the stages after this one read them back one element per access
     (pipeline.cache.StoredItems), so a scene's per-sweep outputs are not held in memory; their readers
-    may only index or iterate them.
+    may only index or iterate them. run may return an item output as a one-pass iterable (a generator, or a
+    sequence computing each element on access): its elements are then made while the cache stores them, one
+    at a time, and the stage's time includes storing them; other outputs it fills during that pass are
+    complete once the pass ends (the cache stores the entry after the items).
     per_frame: a frame stage: run(inputs, frame, params) -> frame outputs, where `inputs` holds the scene
     artifacts named in `inputs` and `frame` the frame's artifacts so far ("position": the sweep's position in
     the scene, plus the outputs of earlier frame stages); it may set "failure" (reason) to skip the frame's

@@ -50,15 +50,13 @@ def chunk_bounds(cells_max: np.ndarray, params: ReconParams) -> list[np.ndarray]
 class ChunkTiles:
     """The points (N, 3) of one reconstruction grouped by the chunk core holding their xy cell.
 
-    anchor (3,) m: the lattice corner; xy (N, 2): the points' xy in level-0 units relative to it;
-    bounds: per xy axis the core bounds in level-0 cells; order: point indices sorted by core
+    anchor (3,) m: the lattice corner; bounds: per xy axis the core bounds in level-0 cells; order: point indices sorted by core
     (row-major over (x, y) core index); starts: where each core's points begin in `order` (one
     more entry than cores)."""
 
     points: np.ndarray
     anchor: np.ndarray
     voxel_size: float
-    xy: np.ndarray
     bounds: list[np.ndarray]
     order: np.ndarray
     starts: np.ndarray
@@ -66,14 +64,15 @@ class ChunkTiles:
     @classmethod
     def of(cls, points: np.ndarray, params: ReconParams) -> "ChunkTiles":
         anchor = lattice_anchor(points, params)
-        xy = (points[:, :2] - anchor[:2]) / params.voxel_size
-        cells = np.floor(xy).astype(np.int64)
+        cells = np.floor((points[:, :2] - anchor[:2]) / params.voxel_size).astype(np.int64)
         bounds = chunk_bounds(cells.max(axis=0) + 1, params)
-        index = [np.searchsorted(b, c, side="right") - 1 for b, c in zip(bounds, cells.T)]
-        core = index[0] * (len(bounds[1]) - 1) + index[1]
+        core = np.searchsorted(bounds[0], cells[:, 0], side="right") - 1
+        core *= len(bounds[1]) - 1
+        core += np.searchsorted(bounds[1], cells[:, 1], side="right") - 1
+        del cells
         order = np.argsort(core, kind="stable")
         starts = np.searchsorted(core[order], np.arange((len(bounds[0]) - 1) * (len(bounds[1]) - 1) + 1))
-        return cls(points, anchor, params.voxel_size, xy, bounds, order, starts)
+        return cls(points, anchor, params.voxel_size, bounds, order, starts)
 
     def cores(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Every core's xy cell range [lo, hi) (level-0 voxels), row-major."""
@@ -96,7 +95,7 @@ class ChunkTiles:
 
     def within(self, indices: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: float) -> np.ndarray:
         """bool per index: whether that point's xy (level-0 units) lies in [lo - reach, hi + reach)."""
-        u = self.xy[indices]
+        u = (self.points[indices, :2] - self.anchor[:2]) / self.voxel_size
         return np.all((u >= lo - reach) & (u < hi + reach), axis=1)
 
 
