@@ -5,10 +5,12 @@ voxel, are cleared (nuplan_occ.voxel.free_space); then `mask_camera` from the 8 
 occlusion by the frame's (cleared) occupancy.
 
 Rays start at the merged LiDAR frame's origin (the only sensor pose nuPlan stores).
-Scene pass `lidar_rays` (params section `visibility`): input `scene`; output `observations`
-(RayObservations: every loaded output frame's observed and FREE grids as packed bits, 640 KB each), so a
-frame can use the other frames' free space without holding their grids.
-Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate`, `observations`, frame
+Scene pass `lidar_rays` (params section `visibility`): input `scene`; outputs `observations`
+(RayObservations: every loaded output frame's FREE grid as packed bits, 640 KB each, so a frame can use the
+other frames' free space without holding their grids) and `observed_bits` (an item output, one row of
+`observations` per element: that frame's observed grid as packed bits, read back by its own frame only).
+Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate`, `observations`,
+`observed_bits`, frame
 inputs `grids`, `semantics`; prepared once per scene: `camera_segments` (the cameras' rays); frame outputs
 `masks` ({"mask_lidar", "mask_camera"}), `final_semantics` (`semantics` with the cleared voxels empty),
 `free_cleared` (number of voxels cleared).
@@ -48,12 +50,10 @@ class VisibilityParams:
 
 @dataclass
 class RayObservations:
-    """The LiDAR observation grids (`lidar_observation`) of a scene's loaded output frames, one row per
-    frame: tokens (sweep tokens, scene order); observed, free: uint8 (F, n_bytes) np.packbits of the flat
-    observed (not UNKNOWN) and FREE grids (`packed_free`)."""
+    """The FREE grids (`lidar_observation`, `packed_free`) of a scene's loaded output frames, one row per
+    frame: tokens (sweep tokens, scene order); free: uint8 (F, n_bytes) np.packbits of the flat FREE grids."""
 
     tokens: list[str]
-    observed: np.ndarray
     free: np.ndarray
 
     def row(self, token: str) -> int:
@@ -67,13 +67,16 @@ def run_rays(inputs: dict, params: VisibilityParams) -> dict:
     scene = inputs["scene"]
     positions = [p for p in scene.output_positions() if scene.sweeps[p].has_cloud] if params.lidar else []
     n_bytes = (int(np.prod(DEFAULT_GRID.shape)) + 7) // 8
-    observed = np.empty((len(positions), n_bytes), dtype=np.uint8)
     free = np.empty((len(positions), n_bytes), dtype=np.uint8)
-    for row, position in enumerate(positions):
-        observation = lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
-        observed[row] = np.packbits((observation != UNKNOWN).reshape(-1))
-        free[row] = packed_free(observation)
-    return {"observations": RayObservations([scene.sweeps[p].token for p in positions], observed, free)}
+
+    def observed_bits():  # one frame at a time, while the cache stores them; fills `free` on the way
+        for row, position in enumerate(positions):
+            observation = lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
+            free[row] = packed_free(observation)
+            yield np.packbits((observation != UNKNOWN).reshape(-1))
+
+    return {"observations": RayObservations([scene.sweeps[p].token for p in positions], free),
+            "observed_bits": observed_bits()}
 
 
 def prepare(inputs: dict, params: VisibilityParams) -> dict:
@@ -91,7 +94,7 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     masks, cleared = {}, 0
     if params.lidar:
         observations = inputs["observations"]
-        observed = np.unpackbits(observations.observed[observations.row(token)], count=int(np.prod(DEFAULT_GRID.shape)))
+        observed = np.unpackbits(inputs["observed_bits"][observations.row(token)], count=int(np.prod(DEFAULT_GRID.shape)))
         masks["mask_lidar"] = observed.reshape(DEFAULT_GRID.shape).astype(bool)
         if params.clear_free_space:
             clear = free_space_clear(position, token, scene, observations, inputs["registration"].poses,
@@ -125,9 +128,11 @@ def free_space_clear(position: int, token: str, scene, observations: RayObservat
     return clear
 
 
-RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations",), params_type=VisibilityParams,
+RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations", "observed_bits"),
+                   item_outputs=("observed_bits",), params_type=VisibilityParams,
                    run=run_rays, code=("nuplan_occ.voxel",), doc=__doc__ or "", params_section="visibility")
 
-STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "observations", "grids", "semantics"),
+STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "observations", "observed_bits",
+                               "grids", "semantics"),
               outputs=("masks", "final_semantics", "free_cleared"), params_type=VisibilityParams,
               run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "", per_frame=True, prepare=prepare)

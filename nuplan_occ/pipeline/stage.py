@@ -23,8 +23,8 @@ class Stage:
     stages, or the scene's source data for the first stage); it returns a dict with exactly `outputs`.
     code: modules whose source is part of this stage's cache key (a change in them reruns the stage).
     cache: False for stages whose outputs are cheaper to recompute than to store (e.g. reading input).
-    item_outputs: outputs that are per-sweep sequences (aligned with scene.sweeps): the cache stores them one
-    element at a time and the stages after this one read them back one element per access
+    item_outputs: outputs that are sequences of one element per sweep or per frame (the stage's doc says which):
+    the cache stores them one element at a time and the stages after this one read them back one element per access
     (pipeline.cache.StoredItems), so a scene's per-sweep outputs are not held in memory; their readers
     may only index or iterate them. run may return an item output as a one-pass iterable (a generator, or a
     sequence computing each element on access): its elements are then made while the cache stores them, one

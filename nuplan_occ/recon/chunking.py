@@ -70,7 +70,7 @@ class ChunkTiles:
         core *= len(bounds[1]) - 1
         core += np.searchsorted(bounds[1], cells[:, 1], side="right") - 1
         del cells
-        order = np.argsort(core, kind="stable")
+        order = np.argsort(core, kind="stable").astype(np.int32 if len(points) < 2**31 else np.int64)
         starts = np.searchsorted(core[order], np.arange((len(bounds[0]) - 1) * (len(bounds[1]) - 1) + 1))
         return cls(points, anchor, params.voxel_size, bounds, order, starts)
 
@@ -100,10 +100,11 @@ class ChunkTiles:
 
 
 def chunked_normals(tiles: ChunkTiles, origins_at: Callable[[np.ndarray], np.ndarray], knn: int) -> np.ndarray:
-    """(N, 3) unit normals of tiles.points facing their sensor origins (origins_at(indices): (k, 3) origins
-    of the points at those indices), estimated one core at a time from the core's points and those within
-    NORMAL_HALO_M of it."""
-    normals = np.zeros(tiles.points.shape)
+    """(N, 3) float32 unit normals of tiles.points facing their sensor origins (origins_at(indices): (k, 3)
+    origins of the points at those indices), estimated one core at a time from the core's points and those
+    within NORMAL_HALO_M of it (float32: the solver averages them per voxel; the scene's normals are held
+    through the whole solve)."""
+    normals = np.zeros(tiles.points.shape, dtype=np.float32)
     halo = NORMAL_HALO_M / tiles.voxel_size
     for lo, hi in tiles.cores():
         near = tiles.near(lo, hi, halo)
