@@ -103,24 +103,51 @@ def _voxel_means(index: torch.Tensor, count: int, values: torch.Tensor, counts: 
     return torch.zeros(count, 3, dtype=values.dtype).index_add_(0, index, values) / counts.unsqueeze(1)
 
 
-def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, params: ReconParams) -> tuple[ImplicitField, SolveStats]:
-    """Solve the NKSR-lite field for points (N, 3) and oriented unit normals (N, 3), metres in the
-    same frame; `anchor` (3,) metres is the lattice corner (a multiple of the coarsest voxel)."""
-    u = torch.from_numpy((np.asarray(points, dtype=np.float64) - anchor) / params.voxel_size)
-    n = torch.from_numpy(np.asarray(normals, dtype=np.float64))
+@dataclass
+class VoxelStatistics:
+    """What the solve keeps of a chunk's points, per occupied level-0 voxel v (M of them; level-0 voxel
+    units): occupied (M, 3) int64 voxel indices, centroid (M, 3), unit_normal (M, 3)
+    the normalised mean normal, confidence (M,) its length k_v; per occupied half-size sub-voxel s:
+    sub_centroid (S, 3) and sub_weight (S,) c_s / c_v."""
 
+    occupied: torch.Tensor
+    centroid: torch.Tensor
+    unit_normal: torch.Tensor
+    confidence: torch.Tensor
+    sub_centroid: torch.Tensor
+    sub_weight: torch.Tensor
+
+
+def voxel_statistics(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, voxel_size: float) -> VoxelStatistics:
+    """The voxel statistics of points (N, 3) with oriented unit normals (N, 3), metres, on the lattice of
+    `anchor` (3,) m and `voxel_size` m. The per-point arrays live only inside this call: the solve after it
+    holds memory in proportion to voxels, not points."""
+    u = torch.from_numpy((np.asarray(points, dtype=np.float64) - anchor) / voxel_size)
+    n = torch.from_numpy(np.asarray(normals, dtype=np.float64))
     occupied, inverse, counts = unique_voxels(torch.floor(u).to(torch.int64))
     m0 = len(occupied)
     centroid = _voxel_means(inverse, m0, u, counts)
     mean_normal = _voxel_means(inverse, m0, n, counts)
+    del n
     confidence = torch.linalg.vector_norm(mean_normal, dim=1)
     unit_normal = mean_normal / confidence.clamp_min(1e-12).unsqueeze(1)
-
     sub_voxel, sub_inverse, sub_counts = unique_voxels(torch.floor(2.0 * u).to(torch.int64))
     sub_centroid = _voxel_means(sub_inverse, len(sub_voxel), u, sub_counts)
     parent_count = torch.zeros(len(sub_voxel), dtype=counts.dtype).index_put_((sub_inverse,), counts[inverse])
-    value_scale = torch.sqrt(params.value_weight * sub_counts.to(torch.float64) / parent_count.to(torch.float64))
+    sub_weight = sub_counts.to(torch.float64) / parent_count.to(torch.float64)
+    return VoxelStatistics(occupied, centroid, unit_normal, confidence, sub_centroid, sub_weight)
+
+
+def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, params: ReconParams) -> tuple[ImplicitField, SolveStats]:
+    """Solve the NKSR-lite field for points (N, 3) and oriented unit normals (N, 3), metres in the
+    same frame; `anchor` (3,) metres is the lattice corner (a multiple of the coarsest voxel)."""
+    voxels = voxel_statistics(points, normals, anchor, params.voxel_size)
+    occupied, centroid, unit_normal, confidence = voxels.occupied, voxels.centroid, voxels.unit_normal, voxels.confidence
+    sub_centroid = voxels.sub_centroid
+    m0 = len(occupied)
+    value_scale = torch.sqrt(params.value_weight * voxels.sub_weight)
     grad_scale = torch.sqrt(params.gradient_weight * confidence)
+    del voxels
 
     hierarchy = VoxelHierarchy.build(occupied, params.levels)
     steps = torch.tensor(FRONT_OFFSETS, dtype=torch.float64)
@@ -138,7 +165,7 @@ def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, param
     result = jacobi_pcg(to_torch_csr(matrix), diagonal, rhs, params.pcg_tolerance, params.pcg_max_iter)
     field = ImplicitField(hierarchy=hierarchy, coefficients=result.x, anchor=np.asarray(anchor, dtype=np.float64), voxel_size=params.voxel_size)
     stats = SolveStats(
-        points=len(u), voxels=m0, unknowns=hierarchy.num_unknowns, nnz=int(matrix.nnz),
+        points=len(points), voxels=m0, unknowns=hierarchy.num_unknowns, nnz=int(matrix.nnz),
         iterations=result.iterations, relative_residual=result.relative_residual,
     )
     return field, stats
