@@ -5,10 +5,11 @@ A member is a payload compressed as one standard stream; the payload is one of t
 - "packbits": bool arrays as `np.packbits` of the C-order flattened array (first voxel in the most
   significant bit of byte 0, last byte zero-padded): ceil(n / 8) bytes for n voxels.
 The container is a zstd frame with its content size in the header, or an .xz stream (LZMA2, CRC32
-check). Both are read by stock tools (`zstd -d`, `xz -d`, Python's zstandard / lzma). The masks use xz:
-on the real 400 x 400 x 32 masks its binary range coder is ~20 % smaller than zstd-19 and ~45 % smaller
-than zstd-3, decoding in ~1-4 ms. A decoder recognises the container by its magic bytes, so datasets of
-schema version 1 (zstd masks) stay readable.
+check). Both are read by stock tools (`zstd -d`, `xz -d`, Python's zstandard / lzma). The masks use xz at
+preset 0 (LZMA2's fast mode): its range coder suits packed bits better than zstd at equal encode time, and
+preset 6 saves a fifth of the mask bytes for ten times the encode time (sizes and times: the notes of
+bench/report-scale.md). A decoder recognises the container by its magic bytes, so datasets of schema
+version 1 (zstd masks) and masks of any preset stay readable.
 Arrays are indexed [x, y, z] in the ego frame of the frame's timestamp (see `nuplan_occ.grid`);
 `flow` has a trailing axis of 3 (vx, vy, vz) in m/s, ego frame.
 """
@@ -87,8 +88,8 @@ MEMBERS: dict[str, MemberSpec] = {
     m.name: m
     for m in (
         MemberSpec("semantics", "sem.zst", "uint8", (), False, "zstd", 9),
-        MemberSpec("mask_lidar", "mask_lidar.bits.xz", "bool", (), True, "xz", 6),
-        MemberSpec("mask_camera", "mask_camera.bits.xz", "bool", (), True, "xz", 6),
+        MemberSpec("mask_lidar", "mask_lidar.bits.xz", "bool", (), True, "xz", 0),
+        MemberSpec("mask_camera", "mask_camera.bits.xz", "bool", (), True, "xz", 0),
         MemberSpec("instance", "inst.zst", "uint16", (), False, "zstd", 9),
         MemberSpec("flow", "flow.zst", "float16", (3,), False, "zstd", 9),
     )

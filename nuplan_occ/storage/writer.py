@@ -79,7 +79,7 @@ class DatasetWriter:
 
     metadata: must hold "params" (any JSON); the writer adds grid, label map, member codecs, software
     and schema version. grid: the arrays' grid (default 400 x 400 x 32). zstd_levels: member name ->
-    zstd level, overriding the defaults (semantics 9, others 3).
+    zstd level or xz preset, overriding the defaults (`codecs.MEMBERS`).
     """
 
     def __init__(
