@@ -47,7 +47,13 @@ class AggregateParams:
     dropped (negative: keep them): an object's points that its logged box missed would otherwise become
     background, and a ghost trail where the object moves; ground_keep_m: the grown box starts this high
     above the box's bottom, so the ground around objects stays (0.03 m measured against 0.1 m on the bench:
-    trail voxels 531 -> 484, nothing else changed)."""
+    trail voxels 531 -> 484, nothing else changed).
+    max_range_m: background points farther than this from their own sweep's ego (x-y distance, m) are not
+    aggregated (0: no limit). Logs box agents only up to a range (the synthetic logs 80 m, nuPlan's annotation
+    range is not documented), so beyond it moving vehicles have no box and their points would enter the
+    background as a static ghost; the sweeps' rays cannot vote them out there either, as each sweep votes only
+    inside its own grid. A point inside an output frame's grid is within 70.7 m of that frame's ego, so the
+    scenery of every grid is still seen from the nearer sweeps (bench/report-scale.md notes: trails at 20 s)."""
 
     voxel_downsample_m: float = 0.05
     crop_margin_m: float = 5.0
@@ -60,6 +66,7 @@ class AggregateParams:
     dynamic_sweep_stride: int = 2
     object_clearance_m: float = 0.2
     ground_keep_m: float = 0.03
+    max_range_m: float = 75.0
 
 
 MOVER_CELL_M = 0.05
@@ -85,11 +92,13 @@ def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray,
 
 def cleared_background(background: Sequence, object_boxes: Sequence, position: int,
                        params: AggregateParams) -> np.ndarray:
-    """The background (ego frame) of the sweep at `position` without the points near its objects' corrected
-    boxes (object_clearance_m < 0: as it is). Made when asked for, so that a scene never holds a second copy
+    """The background (ego frame) of the sweep at `position` within max_range_m of its ego and without the
+    points near its objects' corrected boxes (object_clearance_m < 0: as it is). Made when asked for, so that a scene never holds a second copy
     of every sweep's background (an output sweep is cleared twice: for the aggregate and for its movers; the
     compiled box test makes that cheaper than holding the copies)."""
     cloud = background[position]
+    if params.max_range_m > 0:
+        cloud = cloud[np.hypot(cloud[:, 0], cloud[:, 1]) <= params.max_range_m]
     if params.object_clearance_m < 0:
         return cloud
     return cloud[outside_boxes(cloud, object_boxes[position], params.object_clearance_m, params.ground_keep_m)]
