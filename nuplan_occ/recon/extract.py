@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from nuplan_occ.recon.cleanup import compact
-from nuplan_occ.recon.hierarchy import dilate, unique_voxels
+from nuplan_occ.recon.hierarchy import dilate
 from nuplan_occ.recon.nksr_lite import ImplicitField
 
 CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.int64)
@@ -49,15 +49,17 @@ def extract_mesh(
     cells = masked_cells(field, tree, mask_distance, xy_range)
     if len(cells) == 0:
         return empty
-    corners = unique_voxels((cells.unsqueeze(1) + CORNERS).reshape(-1, 3))[0]
-    values = field.evaluate(corners.to(torch.float64)).numpy()
-    lo = corners.min(dim=0).values
-    shape = tuple((corners.max(dim=0).values - lo + 1).tolist())
+    lo = cells.min(dim=0).values
+    rel = (cells - lo).numpy()
+    shape = tuple((rel.max(axis=0) + 2).tolist())
+    needed = np.zeros(shape, dtype=bool)  # the cells' corners, marked in place of 8 rows per cell
+    for i, j, k in CORNERS.tolist():
+        needed[rel[:, 0] + i, rel[:, 1] + j, rel[:, 2] + k] = True
+    corners = torch.from_numpy(np.argwhere(needed).astype(np.int64)) + lo  # lexicographic, as `needed` is C-ordered
     volume = np.ones(shape, dtype=np.float32)
-    rel = (corners - lo).numpy()
-    volume[rel[:, 0], rel[:, 1], rel[:, 2]] = values
+    volume[needed] = field.evaluate(corners.to(torch.float64)).numpy()
     mask = np.zeros(shape, dtype=bool)
-    upper = (cells - lo + 1).numpy()  # skimage tests a cube's mask at its upper corner
+    upper = rel + 1  # skimage tests a cube's mask at its upper corner
     mask[upper[:, 0], upper[:, 1], upper[:, 2]] = True
     if min(shape) < 2:
         return empty

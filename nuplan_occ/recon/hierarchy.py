@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy import ndimage
 
-from nuplan_occ.recon.basis import OFFSETS
 from nuplan_occ.recon.params import ReconError
 
 MAX_INDEX_VOLUME = 1 << 28
@@ -70,10 +70,18 @@ def unique_voxels(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tor
 
 
 def dilate(coords: torch.Tensor, times: int = 1) -> torch.Tensor:
-    """Unique voxel coordinates (M', 3) of `coords` (M, 3) grown by `times` 26-neighbourhoods."""
-    for _ in range(times):
-        coords = unique_voxels((coords.unsqueeze(1) + OFFSETS).reshape(-1, 3))[0]
-    return coords
+    """Unique voxel coordinates (M', 3) int64, in lexicographic order, of `coords` (M, 3) grown by `times`
+    26-neighbourhoods (coords as given when times is 0 or there are none). Grown on a dense occupancy volume
+    over their bounding box (a separable maximum filter), which holds one byte per voxel of the box instead
+    of the 27 * M candidate rows a sparse growth sorts."""
+    if times <= 0 or len(coords) == 0:
+        return coords
+    lo = coords.min(dim=0).values - times
+    rel = (coords - lo).numpy()
+    volume = np.zeros(tuple((rel.max(axis=0) + times + 1).tolist()), dtype=np.uint8)
+    volume[rel[:, 0], rel[:, 1], rel[:, 2]] = 1
+    grown = ndimage.maximum_filter(volume, size=2 * times + 1, mode="constant", cval=0)
+    return torch.from_numpy(np.argwhere(grown).astype(np.int64)) + lo
 
 
 def _level(coords: torch.Tensor, size: int, offset: int) -> LevelGrid:
