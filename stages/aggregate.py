@@ -6,7 +6,8 @@ frame) accumulated (rigid classes over the whole scene, pedestrians over a short
 For space carving, the background rays of each frame that cross a rigid track's box are kept in that
 box's frame (they show where the object is not).
 
-Inputs: `scene`, `background`, `registration`, `object_boxes`, `object_points`.
+Inputs: `scene`, `background` (of the sweeps at `background_positions`), `registration`, `object_boxes`,
+`object_points` (of every loaded sweep).
 Outputs: `background_aggregate` (BackgroundAggregate, scene frame), `objects` (track -> ObjectAggregate),
 `object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m), `frame_movers` (output
 sweep position -> (n, 3) float32, scene frame: the sweep's own background points where the aggregate
@@ -107,6 +108,7 @@ def cleared_background(background: Sequence, object_boxes: Sequence, position: i
 def run(inputs: dict, params: AggregateParams) -> dict:
     scene = inputs["scene"]
     ok = scene.ok_indices()
+    with_background = inputs["background_positions"]
     poses = inputs["registration"].poses
     outputs = [i for i in ok if scene.sweeps[i].is_output]
     crop = None
@@ -115,11 +117,11 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     def cleared(position: int) -> np.ndarray:
         return cleared_background(inputs["background"], inputs["object_boxes"], position, params)
 
-    clouds = MappedSequence(ok, cleared)
+    clouds = MappedSequence(with_background, cleared)
     background = aggregate_background(
         clouds,
-        np.repeat(scene.sensor_origin_ego[None], len(ok), axis=0),
-        poses[ok],
+        np.repeat(scene.sensor_origin_ego[None], len(with_background), axis=0),
+        poses[with_background],
         T_global_from_scene=poses[ok[0]] if ok else None,
         voxel_downsample_m=params.voxel_downsample_m or None,
         crop=crop,
@@ -141,7 +143,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     objects = aggregate_objects([inputs["object_points"][i] for i in ok], [inputs["object_boxes"][i] for i in ok],
                                 rigid_categories=params.rigid_categories)
     through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for i in ok:
+    for i in with_background:
         boxes, points = inputs["object_boxes"][i], inputs["background"][i]
         origins = np.broadcast_to(scene.sensor_origin_ego, points.shape)
         for k, track in enumerate(boxes.track_tokens):
@@ -154,7 +156,8 @@ def run(inputs: dict, params: AggregateParams) -> dict:
             "frame_movers": frame_movers}
 
 
-STAGE = Stage("aggregate", inputs=("scene", "background", "registration", "object_boxes", "object_points"),
+STAGE = Stage("aggregate", inputs=("scene", "background", "background_positions", "registration", "object_boxes",
+                            "object_points"),
               outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers"),
               params_type=AggregateParams,
               run=run,

@@ -1,6 +1,7 @@
 """Stage 3, register (FBSA): refine the logged ego poses by ICP on the filtered background, with
 the logged relative motion as the prior; every correction is gated (poor fit or implausible jump ->
-keep the logged pose, with the reason recorded).
+keep the logged pose, with the reason recorded). Sweeps without a background (failed, or left out by the
+filter's sweep stride) get poses interpolated between their neighbours' refined poses at their timestamps.
 
 Inputs: `scene`, `background`. Outputs: `registration` (RegistrationResult; poses are T_global_from_ego).
 """
@@ -11,14 +12,13 @@ import numpy as np
 
 from nuplan_occ.fbsa.register import RegistrationParams, refine_poses
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.sequences import MappedSequence
 
 
 def run(inputs: dict, params: RegistrationParams) -> dict:
     scene = inputs["scene"]
-    clouds = MappedSequence(inputs["background"], lambda points: np.zeros((0, 3)) if points is None else points)
     logged = np.stack([sweep.logged_pose for sweep in scene.sweeps])
-    return {"registration": refine_poses(clouds, logged, params)}
+    times = np.array([sweep.timestamp_us for sweep in scene.sweeps], dtype=np.float64)
+    return {"registration": refine_poses(inputs["background"], logged, params, times)}
 
 
 STAGE = Stage("register", inputs=("scene", "background"), outputs=("registration",),

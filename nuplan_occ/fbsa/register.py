@@ -307,17 +307,40 @@ def _check_inputs(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray, pa
     return logged
 
 
-def _checked_cloud(clouds_ego: Sequence[np.ndarray], k: int) -> np.ndarray:
+def _checked_cloud(clouds_ego: Sequence[np.ndarray | None], k: int) -> np.ndarray | None:
     cloud = clouds_ego[k]
+    if cloud is None:
+        return None
     if np.ndim(cloud) != 2 or np.shape(cloud)[1] != 3:
         raise FbsaInputError(f"refine_poses: cloud {k} must be (n, 3), got shape {np.shape(cloud)}")
     return cloud
 
 
-def refine_poses(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray,
-                 params: RegistrationParams | None = None) -> RegistrationResult:
+def interpolate_gaps(chain: np.ndarray, known: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """chain (F, 4, 4) with every pose that is not `known` (F,) bool but lies between two known ones replaced
+    by their interpolation at its time (times (F,), any unit): rotation along the shortest arc, translation
+    linear. Poses before the first or after the last known one are kept."""
+    out = chain.copy()
+    index = np.flatnonzero(known)
+    for a, b in zip(index[:-1], index[1:]):
+        if b - a < 2:
+            continue
+        between = np.arange(a + 1, b)
+        alpha = (times[between] - times[a]) / (times[b] - times[a])
+        turn = Rotation.from_matrix(chain[a, :3, :3].T @ chain[b, :3, :3]).as_rotvec()
+        out[between, :3, :3] = chain[a, :3, :3] @ Rotation.from_rotvec(alpha[:, None] * turn).as_matrix()
+        out[between, :3, 3] = chain[a, :3, 3] + alpha[:, None] * (chain[b, :3, 3] - chain[a, :3, 3])
+    return out
+
+
+def refine_poses(clouds_ego: Sequence[np.ndarray | None], logged_poses: np.ndarray,
+                 params: RegistrationParams | None = None, times: np.ndarray | None = None) -> RegistrationResult:
     """Refined T_global_from_ego of every frame (see the module docstring for the procedure and anchoring).
-    clouds_ego: any sequence; each cloud is read once, in frame order."""
+    clouds_ego: any sequence; each cloud is read once, in frame order. A frame whose cloud is None (a failed
+    sweep, or one left out of registration) is not registered (reason "no cloud"): between frames with clouds
+    its pose is interpolated from theirs at its time (times (F,), any unit; default: the frame index), since
+    the motion over a few sweeps is smooth while a logged pose may be off by its own noise; before the first
+    or after the last it follows the logged motion from its neighbour."""
     params = params or RegistrationParams()
     logged = _check_inputs(clouds_ego, logged_poses, params)
     F = len(logged)
@@ -325,6 +348,7 @@ def refine_poses(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray,
     local_log = np.einsum("ij,fjk->fik", invert_transform(origin), logged)  # T_local_from_ego, logged
     chain = np.empty_like(local_log)
     accepted = np.zeros(F, dtype=bool)
+    has_cloud = np.ones(F, dtype=bool)
     fitness, rmse = np.full(F, np.nan), np.full(F, np.nan)
     reasons = [""] * F
     local_map = _LocalMap(params)
@@ -332,6 +356,11 @@ def refine_poses(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray,
         prior = local_log[0] if k == 0 else chain[k - 1] @ invert_transform(local_log[k - 1]) @ local_log[k]
         chain[k] = prior
         cloud = _checked_cloud(clouds_ego, k)
+        if cloud is None:
+            has_cloud[k] = False
+            accepted[k] = k == 0
+            reasons[k] = "" if k == 0 else "no cloud"
+            continue
         source = voxel_centroids(cloud, params.voxel_size_m)
         n_src = len(source)
         if k == 0:
@@ -350,6 +379,8 @@ def refine_poses(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray,
                 chain[k] = T
         if n_src >= params.min_points and (accepted[k] or not local_map.sweeps):
             local_map.add(transform_points(chain[k], voxel_centroids(cloud, params.map_voxel_m)))
+    chain = interpolate_gaps(chain, has_cloud, np.arange(F, dtype=np.float64) if times is None
+                             else np.asarray(times, dtype=np.float64))
     anchor = fit_anchor(chain, local_log, params.log_sigma_xy_m, params.log_sigma_deg) \
         if params.anchor == "fit" and F else np.eye(4)
     poses = np.einsum("ij,jk,fkl->fil", origin, anchor, chain)

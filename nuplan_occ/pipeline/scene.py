@@ -143,6 +143,14 @@ class SceneData:
         """Positions (in self.sweeps) of sweeps whose points loaded."""
         return [i for i, sweep in enumerate(self.sweeps) if sweep.has_cloud]
 
+    def background_positions(self, stride: int) -> list[int]:
+        """Positions of the loaded sweeps whose background enters registration and the aggregate: every
+        output sweep and every `stride`-th sweep in phase with the first output sweep (all loaded sweeps
+        when stride is 1)."""
+        outputs = self.output_positions()
+        phase = outputs[0] % stride if outputs else 0
+        return [i for i in self.ok_indices() if self.sweeps[i].is_output or i % stride == phase]
+
     def points_of(self, positions: list[int]) -> MappedSequence:
         """The xyz (N_i, 3) of the sweeps at `positions`, each read when asked for (they must have loaded)."""
         return MappedSequence(list(positions), lambda position: self.sweeps[position].xyz)

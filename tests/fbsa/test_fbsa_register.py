@@ -96,3 +96,21 @@ def test_refine_poses_input_checks(run):
         refine_poses(clouds[:2], seq.logged[:2], RegistrationParams(anchor="last"))
     empty = refine_poses([], np.zeros((0, 4, 4)))
     assert empty.poses.shape == (0, 4, 4) and empty.reasons == []
+
+
+def test_frames_without_clouds_are_interpolated_between_registered_ones(run):
+    """Every other sweep left out (None): those frames are not registered, and their poses, interpolated
+    between the registered neighbours, are as close to the truth as the registered ones (the logged pose of
+    a left-out frame, 0.3 m / 1 deg off, does not enter)."""
+    seq, clouds, _, _ = run
+    every_other = [cloud if k % 2 == 0 else None for k, cloud in enumerate(clouds)]
+    result = refine_poses(every_other, seq.logged, times=seq.times)
+    left_out = np.arange(1, N_FRAMES, 2)
+    assert [result.reasons[k] for k in left_out] == ["no cloud"] * len(left_out)
+    assert not result.accepted[left_out].any() and result.accepted[::2].all()
+    errors = pose_errors(result.poses, seq.truth)
+    inner = left_out[left_out < N_FRAMES - 1]  # the last frame has no registered frame after it
+    print("\nleft-out frames: horizontal m", np.round(errors.horizontal_m[inner], 3))
+    assert np.median(errors.relative_translation_m) <= 0.02 and np.median(errors.relative_rotation_deg) <= 0.05
+    logged_errors = pose_errors(seq.logged, seq.truth)
+    assert np.median(errors.horizontal_m[inner]) < 0.5 * np.median(logged_errors.horizontal_m[inner])

@@ -1,0 +1,32 @@
+"""Which sweeps build the background (SceneData.background_positions): every output sweep, the sweeps in
+phase with them at the filter's stride, never a sweep that failed to load."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nuplan_occ.pipeline.scene import SceneData, Sweep
+
+
+def _scene(outputs: list[bool], loaded: list[bool]) -> SceneData:
+    sweeps = [Sweep(token=f"s{i}", index=i, timestamp_us=50_000 * i, logged_pose=np.eye(4),
+                    stored_cloud=object() if ok else None, boxes=None, boxes_global=None, is_output=out)
+              for i, (out, ok) in enumerate(zip(outputs, loaded))]
+    return SceneData(task=None, meta=None, sweeps=sweeps, sensor_origin_ego=np.zeros(3), cameras=[], map_path=None,
+                     instance_ids={}, track_categories={})
+
+
+def test_stride_two_keeps_the_output_sweeps_in_phase_with_them():
+    # one context sweep before the outputs, outputs every other sweep from position 1, sweep 5 failed to load
+    outputs = [False, True, False, True, False, True, False, False]
+    loaded = [True, True, True, True, True, False, True, True]
+    scene = _scene(outputs, loaded)
+    assert scene.background_positions(1) == [0, 1, 2, 3, 4, 6, 7]
+    assert scene.background_positions(2) == [1, 3, 7]
+    assert scene.background_positions(3) == [1, 3, 4, 7]
+
+
+def test_an_output_sweep_out_of_phase_is_still_used():
+    outputs = [True, False, True, True, False, True]  # an irregular output step (a dropped sweep in the log)
+    scene = _scene(outputs, [True] * len(outputs))
+    assert scene.background_positions(2) == [0, 2, 3, 4, 5]
