@@ -5,8 +5,9 @@ every chunk uses the same lattice. A chunk owns the cells whose xy index lies in
 [lo, hi) and solves with the points of the core grown by `chunk_overlap` metres on each side;
 the meshes of the cores are concatenated (neighbouring cores meet on shared lattice planes, where
 independently solved fields differ only by the solver's small residual).
-Normals are estimated chunk by chunk too: a core's points from the points of the core grown by
-NORMAL_HALO_M, so no step holds a scene-wide kNN structure.
+Normals are estimated chunk by chunk too, each chunk's points (core and overlap) from the points within
+NORMAL_HALO_M more, just before its solve: no step holds a scene-wide kNN structure or normal array (a point
+of an overlap gets a normal in each chunk holding it).
 Points, normals and the returned vertices are metres in the caller's frame.
 """
 
@@ -99,19 +100,15 @@ class ChunkTiles:
         return np.all((u >= lo - reach) & (u < hi + reach), axis=1)
 
 
-def chunked_normals(tiles: ChunkTiles, origins_at: Callable[[np.ndarray], np.ndarray], knn: int) -> np.ndarray:
-    """(N, 3) float32 unit normals of tiles.points facing their sensor origins (origins_at(indices): (k, 3)
-    origins of the points at those indices), estimated one core at a time from the core's points and those
-    within NORMAL_HALO_M of it (float32: the solver averages them per voxel; the scene's normals are held
-    through the whole solve)."""
-    normals = np.zeros(tiles.points.shape, dtype=np.float32)
-    halo = NORMAL_HALO_M / tiles.voxel_size
-    for lo, hi in tiles.cores():
-        near = tiles.near(lo, hi, halo)
-        own = tiles.within(near, lo, hi, 0.0)
-        if own.any():
-            normals[near[own]] = estimate_normals(tiles.points[near], origins_at(near), knn)[own]
-    return normals
+def chunk_normals(tiles: ChunkTiles, near: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: float,
+                  origins_at: Callable[[np.ndarray], np.ndarray], knn: int) -> np.ndarray:
+    """(len(near), 3) float32 unit normals, facing their sensor origins, of the points `near` (tiles.near(lo,
+    hi, reach): the points within `reach` level-0 voxels of the core [lo, hi)), estimated from those points and
+    the ones within NORMAL_HALO_M beyond them (origins_at(indices): (k, 3) origins of the points at those
+    indices). float32: the solver averages them per voxel."""
+    context = tiles.near(lo, hi, reach + NORMAL_HALO_M / tiles.voxel_size)
+    normals = estimate_normals(tiles.points[context], origins_at(context), knn)
+    return normals[np.searchsorted(context, near)].astype(np.float32)
 
 
 def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray],
@@ -119,7 +116,6 @@ def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray]
     """NKSR-lite mesh (vertices (V, 3) float64 metres, faces (F, 3) int64) and per-chunk stats of
     points (N, 3) seen from their sensor origins (origins_at(indices) -> (k, 3)), metres in one frame."""
     tiles = ChunkTiles.of(points, params)
-    normals = chunked_normals(tiles, origins_at, params.normal_knn)
     h = params.voxel_size
     margin = params.chunk_overlap / h
     mask = params.mask_distance / h
@@ -130,7 +126,8 @@ def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray]
         if not tiles.within(near, lo, hi, min(mask, margin)).any():
             continue
         chunk = points[near]
-        field, chunk_stats = fit_field(chunk, normals[near], tiles.anchor, params)
+        normals = chunk_normals(tiles, near, lo, hi, margin, origins_at, params.normal_knn)
+        field, chunk_stats = fit_field(chunk, normals, tiles.anchor, params)
         verts, tris = extract_mesh(field, cKDTree((chunk - tiles.anchor) / h), mask, (lo, hi))
         stats.append(chunk_stats)
         vertices.append(tiles.anchor + verts * h)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from conftest import box_scan, plane_scan
 
-from nuplan_occ.recon.chunking import ChunkTiles, chunked_normals
+from nuplan_occ.recon.chunking import ChunkTiles, chunk_normals
 from nuplan_occ.recon.normals import estimate_normals
 from nuplan_occ.recon.params import ReconParams
 
@@ -32,11 +32,16 @@ def test_tiles_select_the_points_of_a_grown_core():
             np.testing.assert_array_equal(tiles.near(lo, hi, reach), brute)
 
 
-def test_chunked_normals_match_whole_input_normals():
+def test_chunk_normals_match_whole_input_normals():
     points, origins = _street(np.random.default_rng(1))
     params = ReconParams(chunk_size=3.0)
-    chunked = chunked_normals(ChunkTiles.of(points, params), lambda index: origins[index], params.normal_knn)
+    tiles = ChunkTiles.of(points, params)
     whole = estimate_normals(points, origins, params.normal_knn)
-    cosine = np.einsum("ij,ij->i", chunked, whole)
-    assert np.mean(cosine > np.cos(np.radians(1.0))) > 0.999  # same neighbours, same sensor-facing sign
-    assert np.all(np.einsum("ij,ij->i", chunked, origins - points) >= 0)
+    reach = params.chunk_overlap / params.voxel_size
+    for lo, hi in tiles.cores():
+        near = tiles.near(lo, hi, reach)
+        chunked = chunk_normals(tiles, near, lo, hi, reach, lambda index: origins[index], params.normal_knn)
+        assert chunked.dtype == np.float32 and chunked.shape == (len(near), 3)
+        cosine = np.einsum("ij,ij->i", chunked, whole[near])
+        assert np.mean(cosine > np.cos(np.radians(1.0))) > 0.999  # same neighbours, same sensor-facing sign
+        assert np.all(np.einsum("ij,ij->i", chunked, origins[near] - points[near]) >= 0)
