@@ -25,10 +25,11 @@ class FilterParams:
     "global" (the paper's ||p - mu|| < k sigma). nb_neighbors: 8 rather than 20 (nuplan_occ.fbsa.outliers:
     more outliers caught, fewer real points lost, half the kNN search; the scale bench rows are in
     bench/report-scale.md's notes).
-    sweep_stride: the background is taken from every output sweep and every n-th sweep in phase with them
-    (1: every sweep). nuPlan's LiDAR sweeps at 20 Hz and the dataset's frames are 10 Hz, so 2 takes the
-    output sweeps; the sweeps in between repeat the same static scene from ~0.5 m further along (the
-    measurement behind the default is in bench/report-scale.md)."""
+    sweep_stride: the background is taken from every output sweep, every n-th sweep in phase with them and the
+    first and last sweeps (`SceneData.background_positions`; 1: every sweep). nuPlan's LiDAR sweeps at 20 Hz
+    and the dataset's frames are 10 Hz, so 2 takes the output sweeps; the sweeps in between repeat the same
+    static scene from ~0.5 m further along (measured in bench/report-scale.md: faster and smaller on long
+    scenes, a little less background on the sub-2 s scenes of the small bench)."""
 
     method: str = "range"
     nb_neighbors: int = 8

@@ -1,7 +1,8 @@
 """Stage 3, register (FBSA): refine the logged ego poses by ICP on the filtered background, with
 the logged relative motion as the prior; every correction is gated (poor fit or implausible jump ->
-keep the logged pose, with the reason recorded). Sweeps without a background (failed, or left out by the
-filter's sweep stride) get poses interpolated between their neighbours' refined poses at their timestamps.
+keep the logged pose, with the reason recorded). Only the sweeps of `SceneData.background_positions(sweep_stride)`
+are registered; the others (and failed sweeps, or sweeps the filter left without a background) get poses
+interpolated between their neighbours' refined poses at their timestamps.
 
 Inputs: `scene`, `background`. Outputs: `registration` (RegistrationResult; poses are T_global_from_ego).
 """
@@ -12,13 +13,19 @@ import numpy as np
 
 from nuplan_occ.fbsa.register import RegistrationParams, refine_poses
 from nuplan_occ.pipeline.stage import Stage
+from nuplan_occ.sequences import MappedSequence
 
 
 def run(inputs: dict, params: RegistrationParams) -> dict:
     scene = inputs["scene"]
+    if params.sweep_stride < 1:
+        raise ValueError(f"register: sweep_stride must be >= 1, got {params.sweep_stride}")
+    registered = set(scene.background_positions(params.sweep_stride))
+    clouds = MappedSequence(list(range(len(scene.sweeps))),
+                            lambda position: inputs["background"][position] if position in registered else None)
     logged = np.stack([sweep.logged_pose for sweep in scene.sweeps])
     times = np.array([sweep.timestamp_us for sweep in scene.sweeps], dtype=np.float64)
-    return {"registration": refine_poses(inputs["background"], logged, params, times)}
+    return {"registration": refine_poses(clouds, logged, params, times)}
 
 
 STAGE = Stage("register", inputs=("scene", "background"), outputs=("registration",),

@@ -67,6 +67,9 @@ class RegistrationParams:
     0.10-0.22 for full sweeps, 0.10-0.13 with buildings on one side only, 0.003-0.005 for a road patch without
     structure (map normals are noisy), about 1e-6 for a perfect plane; hence 0.02.
     anchor: "fit" or "first" (module docstring); log_sigma_xy_m / log_sigma_deg: weights of the "fit" anchor.
+    sweep_stride: used by the register stage, which registers only the sweeps of
+    `SceneData.background_positions(sweep_stride)` (every output sweep and every n-th sweep in phase with them;
+    1: every sweep) and passes the others as None, so their poses are interpolated (`refine_poses`).
     """
 
     voxel_size_m: float = 0.3
@@ -87,6 +90,7 @@ class RegistrationParams:
     anchor: str = "fit"
     log_sigma_xy_m: float = 0.3
     log_sigma_deg: float = 1.0
+    sweep_stride: int = 2
 
 
 @dataclass

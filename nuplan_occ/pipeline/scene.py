@@ -144,12 +144,13 @@ class SceneData:
         return [i for i, sweep in enumerate(self.sweeps) if sweep.has_cloud]
 
     def background_positions(self, stride: int) -> list[int]:
-        """Positions of the loaded sweeps whose background enters registration and the aggregate: every
-        output sweep and every `stride`-th sweep in phase with the first output sweep (all loaded sweeps
-        when stride is 1)."""
-        outputs = self.output_positions()
+        """Positions of the loaded sweeps to register (and, at the filter's stride, to aggregate): every output
+        sweep, every `stride`-th sweep in phase with the first output sweep, and the first and last loaded
+        sweeps, so that every other sweep lies between two of them (all loaded sweeps when stride is 1)."""
+        outputs, ok = self.output_positions(), self.ok_indices()
         phase = outputs[0] % stride if outputs else 0
-        return [i for i in self.ok_indices() if self.sweeps[i].is_output or i % stride == phase]
+        ends = {ok[0], ok[-1]} if ok else set()
+        return [i for i in ok if self.sweeps[i].is_output or i % stride == phase or i in ends]
 
     def points_of(self, positions: list[int]) -> MappedSequence:
         """The xyz (N_i, 3) of the sweeps at `positions`, each read when asked for (they must have loaded)."""

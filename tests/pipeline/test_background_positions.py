@@ -1,5 +1,5 @@
-"""Which sweeps build the background (SceneData.background_positions): every output sweep, the sweeps in
-phase with them at the filter's stride, never a sweep that failed to load."""
+"""Which sweeps are registered and build the background (SceneData.background_positions): every output sweep,
+the sweeps in phase with them at the stride, the first and last loaded sweeps, never a sweep that failed to load."""
 
 from __future__ import annotations
 
@@ -22,11 +22,11 @@ def test_stride_two_keeps_the_output_sweeps_in_phase_with_them():
     loaded = [True, True, True, True, True, False, True, True]
     scene = _scene(outputs, loaded)
     assert scene.background_positions(1) == [0, 1, 2, 3, 4, 6, 7]
-    assert scene.background_positions(2) == [1, 3, 7]
-    assert scene.background_positions(3) == [1, 3, 4, 7]
+    assert scene.background_positions(2) == [0, 1, 3, 7]
+    assert scene.background_positions(3) == [0, 1, 3, 4, 7]
 
 
 def test_an_output_sweep_out_of_phase_is_still_used():
-    outputs = [True, False, True, True, False, True]  # an irregular output step (a dropped sweep in the log)
+    outputs = [True, False, True, True, False, True, False]  # an irregular output step (a dropped sweep in the log)
     scene = _scene(outputs, [True] * len(outputs))
-    assert scene.background_positions(2) == [0, 2, 3, 4, 5]
+    assert scene.background_positions(2) == [0, 2, 3, 4, 5, 6]
