@@ -4,7 +4,9 @@ The level-0 lattice is anchored once for the whole input (a multiple of the coar
 every chunk uses the same lattice. A chunk owns the cells whose xy index lies in its core
 [lo, hi) and solves with the points of the core grown by `chunk_overlap` metres on each side;
 the meshes of the cores are concatenated (neighbouring cores meet on shared lattice planes, where
-independently solved fields differ only by the solver's small residual).
+independently solved fields differ only by the solver's small residual). A core whose points (overlap
+included) exceed `chunk_max_points` is halved across its longer side until each part fits, so a solve's
+memory is bounded by the budget, not by how densely a long scene covers a tile.
 Normals are estimated chunk by chunk too, each chunk's points (core and overlap) from the points within
 NORMAL_HALO_M more, just before its solve: no step holds a scene-wide kNN structure or normal array (a point
 of an overlap gets a normal in each chunk holding it).
@@ -13,7 +15,7 @@ Points, normals and the returned vertices are metres in the caller's frame.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -111,6 +113,25 @@ def chunk_normals(tiles: ChunkTiles, near: np.ndarray, lo: np.ndarray, hi: np.nd
     return normals[np.searchsorted(context, near)].astype(np.float32)
 
 
+def budgeted_cores(tiles: ChunkTiles, reach: float, max_points: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every core (lo, hi) in level-0 cells with its points `tiles.near(lo, hi, reach)`, a tile's core halved
+    across its longer side (recursively) while it holds more than `max_points` points and both halves
+    stay wider than 2 * reach (max_points <= 0: no budget)."""
+    pending = list(reversed(tiles.cores()))
+    while pending:
+        lo, hi = pending.pop()
+        near = tiles.near(lo, hi, reach)
+        axis = int(np.argmax(hi - lo))
+        half = int(hi[axis] - lo[axis]) // 2
+        if max_points <= 0 or len(near) <= max_points or half <= 2 * reach:
+            yield lo, hi, near
+            continue
+        middle = lo[axis] + half
+        first_hi, second_lo = hi.copy(), lo.copy()
+        first_hi[axis], second_lo[axis] = middle, middle
+        pending += [(second_lo, hi), (lo, first_hi)]
+
+
 def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray],
               params: ReconParams) -> tuple[np.ndarray, np.ndarray, list[SolveStats]]:
     """NKSR-lite mesh (vertices (V, 3) float64 metres, faces (F, 3) int64) and per-chunk stats of
@@ -121,8 +142,7 @@ def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray]
     mask = params.mask_distance / h
     vertices, faces, stats = [], [], []
     n_vertices = 0
-    for lo, hi in tiles.cores():
-        near = tiles.near(lo, hi, margin)
+    for lo, hi, near in budgeted_cores(tiles, margin, params.chunk_max_points):
         if not tiles.within(near, lo, hi, min(mask, margin)).any():
             continue
         chunk = points[near]

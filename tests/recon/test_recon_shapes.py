@@ -120,3 +120,14 @@ def test_chunked_agrees_with_unchunked():
     metrics = surface_metrics(chunked.sample_points(0.05), whole.sample_points(0.05), thresholds=(0.02, 0.05))
     assert metrics["chamfer"] < 0.01
     assert metrics["fscore@0.05"] > 0.99
+
+
+def test_point_budget_agrees_with_unchunked():
+    rng = np.random.default_rng(7)
+    pts, origins = plane_scan(rng, size=10.0, n=30000)
+    whole = reconstruct(pts, origins, params=ReconParams(chunk_size=0.0, chunk_max_points=0))
+    halved = reconstruct(pts, origins, params=ReconParams(chunk_size=0.0, chunk_overlap=2.0, chunk_max_points=12000))
+    assert len(halved.info["chunks"]) == 4 and len(whole.info["chunks"]) == 1
+    metrics = surface_metrics(halved.sample_points(0.05), whole.sample_points(0.05), thresholds=(0.02, 0.05))
+    assert metrics["chamfer"] < 0.01
+    assert metrics["fscore@0.05"] > 0.99
