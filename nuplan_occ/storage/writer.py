@@ -204,8 +204,12 @@ class DatasetWriter:
         return out
 
     def _class_hist(self, semantics: np.ndarray, where: str) -> list[int]:
-        """Voxel count per label id; raises on ids outside the label map."""
-        hist = np.bincount(semantics.reshape(-1), minlength=256)
+        """Voxel count per label id; raises on ids outside the label map. Only the nonzero voxels are counted
+        one by one (a grid is mostly empty)."""
+        flat = semantics.reshape(-1)
+        labelled = flat[flat != 0]
+        hist = np.bincount(labelled, minlength=256)
+        hist[0] = flat.size - labelled.size
         bad = np.setdiff1d(np.flatnonzero(hist), self._label_ids)
         if bad.size:
             raise InvalidFrameError(f"{where}: semantics holds ids {bad.tolist()} not in the label map")
