@@ -49,13 +49,19 @@ def chunk_bounds(cells_max: np.ndarray, params: ReconParams) -> list[np.ndarray]
             .round().astype(np.int64) for extent in cells_max]
 
 
+TILE_CELLS = 16
+"""Side (level-0 cells) of the square tiles by which ChunkTiles sorts the points: a grown core's points are
+gathered tile by tile, and only the points of tiles on its border are tested one by one."""
+
+
 @dataclass
 class ChunkTiles:
-    """The points (N, 3) of one reconstruction grouped by the chunk core holding their xy cell.
+    """The points (N, 3) of one reconstruction sorted by the TILE_CELLS tile holding their xy cell, and the
+    chunk cores tiling them.
 
-    anchor (3,) m: the lattice corner; bounds: per xy axis the core bounds in level-0 cells; order: point indices sorted by core
-    (row-major over (x, y) core index); starts: where each core's points begin in `order` (one
-    more entry than cores)."""
+    anchor (3,) m: the lattice corner; bounds: per xy axis the core bounds in level-0 cells; order: point
+    indices sorted by tile (row-major over (x, y) tile index, ascending within a tile); starts: where each
+    tile's points begin in `order` (one more entry than tiles); tile_columns: tiles along y."""
 
     points: np.ndarray
     anchor: np.ndarray
@@ -63,19 +69,20 @@ class ChunkTiles:
     bounds: list[np.ndarray]
     order: np.ndarray
     starts: np.ndarray
+    tile_columns: int
 
     @classmethod
     def of(cls, points: np.ndarray, params: ReconParams) -> "ChunkTiles":
         anchor = lattice_anchor(points, params)
         cells = np.floor((points[:, :2] - anchor[:2]) / params.voxel_size).astype(np.int64)
         bounds = chunk_bounds(cells.max(axis=0) + 1, params)
-        core = np.searchsorted(bounds[0], cells[:, 0], side="right") - 1
-        core *= len(bounds[1]) - 1
-        core += np.searchsorted(bounds[1], cells[:, 1], side="right") - 1
+        cells //= TILE_CELLS
+        rows, columns = (int(n) for n in cells.max(axis=0) + 1)
+        tile = cells[:, 0] * columns + cells[:, 1]
         del cells
-        order = np.argsort(core, kind="stable").astype(np.int32 if len(points) < 2**31 else np.int64)
-        starts = np.searchsorted(core[order], np.arange((len(bounds[0]) - 1) * (len(bounds[1]) - 1) + 1))
-        return cls(points, anchor, params.voxel_size, bounds, order, starts)
+        order = np.argsort(tile, kind="stable").astype(np.int32 if len(points) < 2**31 else np.int64)
+        starts = np.searchsorted(tile[order], np.arange(rows * columns + 1))
+        return cls(points, anchor, params.voxel_size, bounds, order, starts, columns)
 
     def cores(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Every core's xy cell range [lo, hi) (level-0 voxels), row-major."""
@@ -85,16 +92,27 @@ class ChunkTiles:
 
     def near(self, lo: np.ndarray, hi: np.ndarray, reach: float) -> np.ndarray:
         """Ascending indices of the points whose xy (level-0 units) lies in [lo - reach, hi + reach)."""
-        block = []
-        for axis in range(2):
-            b = self.bounds[axis]
-            first = max(int(np.searchsorted(b, lo[axis] - reach, side="right")) - 1, 0)
-            last = min(int(np.searchsorted(b, hi[axis] + reach, side="left")), len(b) - 1)
-            block.append(range(first, last))
-        columns = len(self.bounds[1]) - 1
-        candidates = np.concatenate([self.order[self.starts[i * columns + j]:self.starts[i * columns + j + 1]]
-                                     for i in block[0] for j in block[1]] or [np.zeros(0, np.int64)])
-        return np.sort(candidates[self.within(candidates, lo, hi, reach)])
+        rows = (len(self.starts) - 1) // self.tile_columns
+        low, high = np.asarray(lo) - reach, np.asarray(hi) + reach
+        first = np.clip(np.floor(low / TILE_CELLS).astype(int), 0, [rows, self.tile_columns])
+        last = np.clip(np.ceil(high / TILE_CELLS).astype(int), first, [rows, self.tile_columns])
+        inner_first = np.clip(np.ceil(low / TILE_CELLS).astype(int), first, last)  # tiles wholly inside
+        inner_last = np.clip(np.floor(high / TILE_CELLS).astype(int), inner_first, last)
+        inside, border = [], []
+
+        def take(to: list, row: int, begin: int, end: int) -> None:
+            if end > begin:
+                to.append(self.order[self.starts[row * self.tile_columns + begin]:self.starts[row * self.tile_columns + end]])
+
+        for row in range(first[0], last[0]):
+            if inner_first[0] <= row < inner_last[0]:
+                take(border, row, first[1], inner_first[1])
+                take(inside, row, inner_first[1], inner_last[1])
+                take(border, row, inner_last[1], last[1])
+            else:
+                take(border, row, first[1], last[1])
+        edge = np.concatenate(border or [np.zeros(0, self.order.dtype)])
+        return np.sort(np.concatenate([*inside, edge[self.within(edge, lo, hi, reach)]]))
 
     def within(self, indices: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: float) -> np.ndarray:
         """bool per index: whether that point's xy (level-0 units) lies in [lo - reach, hi + reach)."""
