@@ -36,6 +36,11 @@ class GridSpec:
         return np.array([self.x_max, self.y_max, self.z_max], dtype=np.float64)
 
     @property
+    def reach(self) -> float:
+        """Metres from the ego origin to the grid's farthest corner: no point farther away is inside the grid."""
+        return float(np.linalg.norm(np.maximum(np.abs(self.lower), np.abs(self.upper))))
+
+    @property
     def shape(self) -> tuple[int, int, int]:
         """Number of voxels along x, y, z."""
         extent = (self.upper - self.lower) / self.voxel_size

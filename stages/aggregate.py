@@ -8,7 +8,8 @@ box's frame (they show where the object is not).
 
 Inputs: `scene`, `background` (of the sweeps at `background_positions`), `registration`, `object_boxes`,
 `object_points` (of every loaded sweep).
-Outputs: `background_aggregate` (BackgroundAggregate, scene frame), `objects` (track -> ObjectAggregate),
+Outputs: `background_aggregate` (BackgroundAggregate, scene frame, its points in ascending scene x, so a
+frame reads only the slice within its grid's reach), `objects` (track -> ObjectAggregate),
 `object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m), `frame_movers` (output
 sweep position -> (n, 3) float32, scene frame: the sweep's own background points where the aggregate
 removed points as dynamic).
@@ -140,6 +141,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                        {p: scene_from_global @ poses[p] for p in outputs},
                                        params.voxel_downsample_m or MOVER_CELL_M)
         background = background.subset(~dynamic)
+    background = background.subset(np.argsort(background.points[:, 0], kind="stable"))
     objects = aggregate_objects([inputs["object_points"][i] for i in ok], [inputs["object_boxes"][i] for i in ok],
                                 rigid_categories=params.rigid_categories)
     through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}

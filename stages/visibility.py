@@ -9,9 +9,8 @@ Scene pass `lidar_rays` (params section `visibility`): input `scene`; outputs `o
 (RayObservations: every loaded output frame's FREE grid as packed bits, 640 KB each, so a frame can use the
 other frames' free space without holding their grids) and `observed_bits` (an item output, one row of
 `observations` per element: that frame's observed grid as packed bits, read back by its own frame only).
-Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate`, `observations`,
-`observed_bits`, frame
-inputs `grids`, `semantics`; prepared once per scene: `camera_segments` (the cameras' rays); frame outputs
+Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate` (points in ascending scene x),
+`observations`, `observed_bits`, frame inputs `grids`, `semantics`; prepared once per scene: `camera_segments` (the cameras' rays); frame outputs
 `masks` ({"mask_lidar", "mask_camera"}), `final_semantics` (`semantics` with the cleared voxels empty),
 `free_cleared` (number of voxels cleared).
 """
@@ -80,8 +79,11 @@ def run_rays(inputs: dict, params: VisibilityParams) -> dict:
 
 
 def prepare(inputs: dict, params: VisibilityParams) -> dict:
-    """Once per scene: the rays of the scene's cameras (`camera_segments`; None without camera masks)."""
+    """Once per scene: the rays of the scene's cameras (`camera_segments`; None without camera masks), after
+    checking that the aggregate's points are in ascending scene x (`background_support`)."""
     scene = inputs["scene"]
+    if params.lidar and params.clear_free_space and np.any(np.diff(inputs["background_aggregate"].points[:, 0]) < 0):
+        raise ValueError("visibility: the background aggregate's points are not in ascending scene x")
     use = params.camera and bool(scene.cameras)
     return {"camera_segments": camera_segments(scene.cameras, DEFAULT_GRID, params.camera_max_range_m) if use else None}
 
@@ -106,11 +108,20 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}
 
 
+def background_support(points_scene: np.ndarray, T_scene_from_ego: np.ndarray) -> np.ndarray:
+    """`point_support` in the frame's grid of the aggregate's points (M, 3), scene frame, m, in ascending scene
+    x: only the slice within the grid's reach of the ego (x of T_scene_from_ego) is moved into the grid."""
+    xs = points_scene[:, 0]
+    ego_x = T_scene_from_ego[0, 3]
+    near = slice(np.searchsorted(xs, ego_x - DEFAULT_GRID.reach), np.searchsorted(xs, ego_x + DEFAULT_GRID.reach, "right"))
+    return point_support(points_scene[near], DEFAULT_GRID, invert_transform(T_scene_from_ego))
+
+
 def free_space_clear(position: int, token: str, scene, observations: RayObservations, poses: np.ndarray, background,
                      grids, semantics: np.ndarray, params: VisibilityParams) -> np.ndarray:
     """bool grid of the frame's background voxels to clear (nuplan_occ.voxel.free_space): crossed by its own
     rays or, with free_space_other_frames, by another output frame's."""
-    support = point_support(background.points, DEFAULT_GRID, invert_transform(poses[position]) @ background.T_global_from_scene)
+    support = background_support(background.points, invert_transform(background.T_global_from_scene) @ poses[position])
     candidates = clearable_background(grids.occupied_background & (semantics > 0), support, grids.ground_height,
                                       DEFAULT_GRID, params.free_space_ground_margin_m)
     own = observations.row(token)

@@ -123,7 +123,7 @@ count against removal, weighted by occupied_ratio (0 = not at all)."""
     candidates = np.flatnonzero(height_above_ground(points, ground_cell_m) > ground_clearance_m)
     candidates = candidates[np.argsort(points[candidates, 0], kind="stable")]  # by scene x: a sweep reads a slice
     xs, ys = points[candidates, 0], points[candidates, 1]
-    reach = float(np.linalg.norm(np.maximum(np.abs(grid.lower), np.abs(grid.upper))))  # grid corner from the ego
+    reach = grid.reach
     free = np.zeros(len(candidates), dtype=np.int32)
     near_returns = np.zeros(len(candidates), dtype=np.int32)
     for cloud, T_f in zip(sweeps_ego, T):

@@ -1,0 +1,23 @@
+"""stages.visibility.background_support: the support of an x-sorted scene aggregate in a frame's grid, from the
+slice of points within the grid's reach, equals the support of every point."""
+
+import numpy as np
+
+from nuplan_occ.geometry import invert_transform, yaw_matrix
+from nuplan_occ.grid import DEFAULT_GRID
+from nuplan_occ.voxel.free_space import point_support
+from stages.visibility import background_support
+
+
+def test_the_reach_slice_gives_the_support_of_every_point():
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-300, 300, 400_000), rng.uniform(-120, 120, 400_000), rng.uniform(-4, 6, 400_000)])
+    points = points[np.argsort(points[:, 0], kind="stable")]
+    for ego_x, ego_y, yaw in [(0.0, 0.0, 0.0), (150.0, -30.0, 0.8), (-260.0, 40.0, -2.5), (290.0, 0.0, np.pi / 2)]:
+        T_scene_from_ego = np.eye(4)
+        T_scene_from_ego[:3, :3] = yaw_matrix(yaw)
+        T_scene_from_ego[:3, 3] = [ego_x, ego_y, 0.3]
+        expected = point_support(points, DEFAULT_GRID, invert_transform(T_scene_from_ego))
+        got = background_support(points, T_scene_from_ego)
+        assert expected.sum() > 10_000  # the grid holds points in every case
+        np.testing.assert_array_equal(got, expected)
