@@ -78,6 +78,34 @@ def _cells(points: np.ndarray, cell_m: float) -> np.ndarray:
     return np.floor(np.asarray(points, dtype=np.float64)[:, :2] / cell_m).astype(np.int64)
 
 
+def _cell_range(points: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The least and greatest `_cells` of the points (N >= 1), from their coordinates' extremes (floor is
+    monotonic, so these are the cells' own extremes)."""
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    low = np.floor(np.array([xy[:, 0].min(), xy[:, 1].min()]) / cell_m).astype(np.int64)
+    high = np.floor(np.array([xy[:, 0].max(), xy[:, 1].max()]) / cell_m).astype(np.int64)
+    return low, high
+
+
+def _column_extremes(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Flat lowest (+inf) and highest (-inf) height per column of a (shape) column grid, to be filled."""
+    return np.full(shape[0] * shape[1], np.inf), np.full(shape[0] * shape[1], -np.inf)
+
+
+def _add_heights(lowest: np.ndarray, highest: np.ndarray, ny: int, cells: np.ndarray, heights: np.ndarray) -> None:
+    """Lower `lowest` and raise `highest` (flat, ny columns per row) by the heights at the grid cells (N, 2)."""
+    flat = cells[:, 0] * ny + cells[:, 1]
+    np.minimum.at(lowest, flat, heights)
+    np.maximum.at(highest, flat, heights)
+
+
+def _flat_mask(lowest: np.ndarray, highest: np.ndarray, shape: tuple[int, int], flatness_m: float) -> np.ndarray:
+    """(shape) bool: columns whose 3x3 neighbourhood spans at most flatness_m in height."""
+    lowest = ndimage.minimum_filter(lowest.reshape(shape), size=3, mode="nearest")
+    highest = ndimage.maximum_filter(highest.reshape(shape), size=3, mode="nearest")
+    return highest - lowest <= flatness_m
+
+
 def flat_columns(clouds: Sequence[np.ndarray], cell_m: float = 0.5, flatness_m: float = 0.06) -> FlatColumns:
     """The columns of the clouds (each (N_i, 3), one frame, m, read twice) whose cell and its 8 neighbours
     hold only points within flatness_m of each other in height, over all clouds together: open, flat ground.
@@ -86,27 +114,30 @@ def flat_columns(clouds: Sequence[np.ndarray], cell_m: float = 0.5, flatness_m: 
     low, high = np.full(2, np.iinfo(np.int64).max), np.full(2, np.iinfo(np.int64).min)
     for points in clouds:
         if len(points):
-            cells = _cells(points, cell_m)
-            low, high = np.minimum(low, cells.min(axis=0)), np.maximum(high, cells.max(axis=0))
+            cloud_low, cloud_high = _cell_range(points, cell_m)
+            low, high = np.minimum(low, cloud_low), np.maximum(high, cloud_high)
     if np.any(low > high):
         return FlatColumns(np.zeros((0, 0), dtype=bool), np.zeros(2, dtype=np.int64), cell_m)
     first = low - 1  # a column of no points all around: the filters below see no edge effects
-    shape = tuple(high - first + 2)
-    lowest, highest = np.full(shape, np.inf), np.full(shape, -np.inf)
+    shape = (int(high[0] - first[0] + 2), int(high[1] - first[1] + 2))
+    lowest, highest = _column_extremes(shape)
     for points in clouds:
         if len(points):
-            cells = _cells(points, cell_m) - first
-            heights = np.asarray(points, dtype=np.float64)[:, 2]
-            np.minimum.at(lowest, (cells[:, 0], cells[:, 1]), heights)
-            np.maximum.at(highest, (cells[:, 0], cells[:, 1]), heights)
-    lowest = ndimage.minimum_filter(lowest, size=3, mode="nearest")
-    highest = ndimage.maximum_filter(highest, size=3, mode="nearest")
-    return FlatColumns(highest - lowest <= flatness_m, first, cell_m)
+            _add_heights(lowest, highest, shape[1], _cells(points, cell_m) - first,
+                         np.asarray(points, dtype=np.float64)[:, 2])
+    return FlatColumns(_flat_mask(lowest, highest, shape, flatness_m), first, cell_m)
 
 
 def flat_ground(points_ego: np.ndarray, cell_m: float = 0.5, flatness_m: float = 0.06) -> np.ndarray:
     """(N,) bool: points (N, 3, ego frame, m) in a flat-ground column of their own cloud (`flat_columns`)."""
-    return flat_columns([points_ego], cell_m, flatness_m).of(points_ego)
+    if len(points_ego) == 0:
+        return np.zeros(0, dtype=bool)
+    cells = _cells(points_ego, cell_m)
+    cells -= cells.min(axis=0) - 1
+    shape = (int(cells[:, 0].max()) + 2, int(cells[:, 1].max()) + 2)
+    lowest, highest = _column_extremes(shape)
+    _add_heights(lowest, highest, shape[1], cells, np.asarray(points_ego, dtype=np.float64)[:, 2])
+    return _flat_mask(lowest, highest, shape, flatness_m)[cells[:, 0], cells[:, 1]]
 
 
 def intensity_ratio(points_ego: np.ndarray, intensity: np.ndarray, sensor_origin_ego: np.ndarray,
@@ -123,11 +154,19 @@ def intensity_ratio(points_ego: np.ndarray, intensity: np.ndarray, sensor_origin
     ground = flat_ground(points_ego)
     bins = np.floor(np.linalg.norm(points_ego[:, :2] - np.asarray(sensor_origin_ego)[None, :2], axis=1)
                     / range_bin_m).astype(np.int64)
-    for b in np.unique(bins[ground]):
-        in_bin = ground & (bins == b)
-        median = float(np.median(intensity[in_bin]))
-        if in_bin.sum() >= min_per_bin and median > 0:
-            ratio[bins == b] = intensity[bins == b] / median
+    ground_bins, ground_intensity = bins[ground], intensity[ground]
+    by_intensity = np.argsort(ground_intensity)
+    order = by_intensity[np.argsort(ground_bins[by_intensity], kind="stable")]  # by bin, then by intensity
+    sorted_bins, sorted_intensity = ground_bins[order], ground_intensity[order]
+    bin_ids, starts, counts = np.unique(sorted_bins, return_index=True, return_counts=True)
+    upper = sorted_intensity[starts + counts // 2]
+    lower = sorted_intensity[starts + (counts - 1) // 2]
+    medians = (lower + upper) / 2.0  # np.median's middle value, or mean of the middle two
+    usable = (counts >= min_per_bin) & (medians > 0)
+    bin_ids, medians = bin_ids[usable], medians[usable]
+    slot = np.minimum(np.searchsorted(bin_ids, bins), max(len(bin_ids) - 1, 0))
+    has = (bin_ids[slot] == bins) if len(bin_ids) else np.zeros(len(bins), dtype=bool)
+    ratio[has] = intensity[has] / medians[slot[has]]
     return ratio
 
 

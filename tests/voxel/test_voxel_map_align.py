@@ -141,6 +141,21 @@ def test_intensity_ratio_compares_with_the_ground_at_the_same_range():
     assert np.allclose(ratio[~paint], 1.0, rtol=0.2)
 
 
+def test_intensity_ratio_divides_by_each_range_bins_median_and_leaves_thin_or_dark_bins_nan():
+    """Known medians per 2 m bin of flat ground: an even count (mean of the middle two), an odd count, a bin
+    below min_per_bin and a bin whose median is zero; points off the flat ground take their bin's median."""
+    rng = np.random.default_rng(5)
+    ranges = np.concatenate([np.full(40, 10.5), np.full(41, 12.5), np.full(10, 14.5), np.full(30, 16.5)])
+    phi = rng.uniform(-0.3, 0.3, len(ranges))
+    points = np.column_stack([ranges * np.cos(phi), ranges * np.sin(phi), np.zeros(len(ranges))])
+    intensity = np.concatenate([rng.permutation(np.arange(40.0)), rng.permutation(np.arange(41.0) * 2),
+                                np.full(10, 5.0), np.zeros(30)])
+    ratio = intensity_ratio(points, intensity, np.zeros(3), range_bin_m=2.0, min_per_bin=20)
+    np.testing.assert_array_equal(ratio[:40], intensity[:40] / 19.5)
+    np.testing.assert_array_equal(ratio[40:81], intensity[40:81] / 40.0)
+    assert np.isnan(ratio[81:]).all()
+
+
 def test_ground_returns_keep_paint_and_drop_the_bright_curb():
     rng = np.random.default_rng(4)
     xy = rng.uniform([-20.0, -10.0], [20.0, 10.0], (40000, 2))
