@@ -1,7 +1,7 @@
 """The build DAG, top to bottom. Each module declares one Stage: inputs, outputs, typed params, and the
 pure functions of `nuplan_occ` it calls.
 
-    scene stages: load -> split -> filter -> register -> track -> aggregate -> reconstruct -> label_map -> lidar_rays
+    scene stages: load -> split -> filter -> register -> track -> lidar_rays -> aggregate -> reconstruct -> label_map
     frame stages, streamed frame by frame: voxelize -> label -> visibility -> write
 """
 
@@ -13,10 +13,10 @@ PIPELINE = [
     filter.STAGE,
     register.STAGE,
     track.STAGE,
+    visibility.RAYS_STAGE,
     aggregate.STAGE,
     reconstruct.STAGE,
     label.MAP_STAGE,
-    visibility.RAYS_STAGE,
     voxelize.STAGE,
     label.STAGE,
     visibility.STAGE,

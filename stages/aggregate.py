@@ -7,7 +7,8 @@ For space carving, the background rays of each frame that cross a rigid track's 
 box's frame (they show where the object is not).
 
 Inputs: `scene`, `background` (of the sweeps at `background_positions`), `registration`, `object_boxes`,
-`object_points` (of every loaded sweep).
+`object_points` (of every loaded sweep), `observations` and `observed_bits` (the lidar_rays stage's
+observation grids of the output frames, the dynamic test's evidence from those sweeps).
 Outputs: `background_aggregate` (BackgroundAggregate, scene frame, its points in ascending scene x, so a
 frame reads only the slice within its grid's reach), `objects` (track -> ObjectAggregate),
 `object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m), `frame_movers` (output
@@ -31,6 +32,9 @@ from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.sequences import MappedSequence
+from nuplan_occ.voxel.free_space import unpacked_observation
+from nuplan_occ.voxel.visibility import lidar_observation
+from stages.visibility import RayObservations
 
 
 @dataclass(frozen=True)
@@ -106,6 +110,16 @@ def cleared_background(background: Sequence, object_boxes: Sequence, position: i
     return cloud[outside_boxes(cloud, object_boxes[position], params.object_clearance_m, params.ground_keep_m)]
 
 
+def sweep_observation(scene, position: int, observations: RayObservations, observed_bits: Sequence) -> np.ndarray:
+    """The `lidar_observation` grid of the sweep at `position`: unpacked from the lidar_rays stage's bits
+    when it is an output frame there, else cast from its returns."""
+    token = scene.sweeps[position].token
+    if token in observations.tokens:
+        row = observations.row(token)
+        return unpacked_observation(observed_bits[row], observations.free[row], DEFAULT_GRID)
+    return lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
+
+
 def run(inputs: dict, params: AggregateParams) -> dict:
     scene = inputs["scene"]
     ok = scene.ok_indices()
@@ -117,6 +131,9 @@ def run(inputs: dict, params: AggregateParams) -> dict:
         crop = (poses[outputs], DEFAULT_GRID.lower - params.crop_margin_m, DEFAULT_GRID.upper + params.crop_margin_m)
     def cleared(position: int) -> np.ndarray:
         return cleared_background(inputs["background"], inputs["object_boxes"], position, params)
+
+    def observation_at(position: int) -> np.ndarray:
+        return sweep_observation(scene, position, inputs["observations"], inputs["observed_bits"])
 
     clouds = MappedSequence(with_background, cleared)
     background = aggregate_background(
@@ -131,8 +148,8 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     if params.remove_dynamic and ok:
         used = ok[::max(1, params.dynamic_sweep_stride)]
         T_scene_from_ego = invert_transform(background.T_global_from_scene) @ poses[used]
-        dynamic = seen_through(background.points, scene.points_of(used), T_scene_from_ego,
-                               scene.sensor_origin_ego, min_votes=params.dynamic_min_votes,
+        dynamic = seen_through(background.points, MappedSequence(used, observation_at), T_scene_from_ego,
+                               min_votes=params.dynamic_min_votes,
                                ground_clearance_m=params.dynamic_ground_clearance_m,
                                protect_dilation=params.dynamic_protect_dilation,
                                occupied_ratio=params.dynamic_occupied_ratio)
@@ -159,7 +176,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
 
 
 STAGE = Stage("aggregate", inputs=("scene", "background", "background_positions", "registration", "object_boxes",
-                            "object_points"),
+                            "object_points", "observations", "observed_bits"),
               outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers"),
               params_type=AggregateParams,
               run=run,

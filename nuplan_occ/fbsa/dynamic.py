@@ -17,6 +17,8 @@ looked up in each sweep's grid by a compiled loop (nuplan_occ.voxel.frame_lookup
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numba
 import numpy as np
 
@@ -25,7 +27,7 @@ from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.voxel.frame_lookup import moved_voxel
 from nuplan_occ.voxel.traversal import grid_args
-from nuplan_occ.voxel.visibility import FREE, OCCUPIED, lidar_observation
+from nuplan_occ.voxel.visibility import FREE, OCCUPIED
 
 
 @numba.njit(cache=True, inline="always")
@@ -93,9 +95,8 @@ def _count_votes(points, candidates, ys, first, last, ego_y, reach, T_ego_from_s
 
 def seen_through(
     points_scene: np.ndarray,
-    sweeps_ego: list[np.ndarray],
+    observations: Sequence[np.ndarray],
     T_scene_from_ego: np.ndarray,
-    origin_ego: np.ndarray,
     grid: GridSpec = DEFAULT_GRID,
     min_votes: int = 2,
     ground_clearance_m: float = 0.3,
@@ -105,15 +106,15 @@ def seen_through(
 ) -> np.ndarray:
     """bool (M,): the background points (M, 3), scene frame, to remove as dynamic (see module doc).
 
-    sweeps_ego: F arrays (n_f, 3), every return of sweep f in its ego frame (the rays origin_ego -> return,
-    origin_ego (3,) ego frame); T_scene_from_ego (F, 4, 4) places sweep f in the scene frame. Only points
-    inside a sweep's `grid` (its ego frame) can get its vote. protect_dilation: voxels (Chebyshev) around the
-    sweep's occupied voxels in which it does not vote (0 = only the occupied voxels themselves); those sweeps
-count against removal, weighted by occupied_ratio (0 = not at all)."""
+    observations: F grids (uint8 (X, Y, Z) in `grid`, `lidar_observation` of sweep f's returns in its ego
+    frame; any sequence, each read once); T_scene_from_ego (F, 4, 4) places sweep f in the scene frame. Only
+    points inside a sweep's `grid` (its ego frame) can get its vote. protect_dilation: voxels (Chebyshev)
+    around the sweep's occupied voxels in which it does not vote (0 = only the occupied voxels themselves);
+    those sweeps count against removal, weighted by occupied_ratio (0 = not at all)."""
     points = np.asarray(points_scene, dtype=np.float64)
     T = np.asarray(T_scene_from_ego, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or T.shape != (len(sweeps_ego), 4, 4):
-        raise FbsaInputError(f"seen_through: need points (M, 3) and T_scene_from_ego ({len(sweeps_ego)}, 4, 4), "
+    if points.ndim != 2 or points.shape[1] != 3 or T.shape != (len(observations), 4, 4):
+        raise FbsaInputError(f"seen_through: need points (M, 3) and T_scene_from_ego ({len(observations)}, 4, 4), "
                              f"got {points.shape} and {T.shape}")
     if min_votes < 1:
         raise FbsaInputError(f"seen_through: min_votes must be >= 1, got {min_votes}")
@@ -126,8 +127,9 @@ count against removal, weighted by occupied_ratio (0 = not at all)."""
     reach = grid.reach
     free = np.zeros(len(candidates), dtype=np.int32)
     near_returns = np.zeros(len(candidates), dtype=np.int32)
-    for cloud, T_f in zip(sweeps_ego, T):
-        obs = lidar_observation(cloud, origin_ego, grid)
+    for obs, T_f in zip(observations, T):
+        if tuple(obs.shape) != tuple(grid.shape):
+            raise FbsaInputError(f"seen_through: an observation grid has shape {obs.shape}, expected {grid.shape}")
         blocked = dilate(obs == OCCUPIED, protect_dilation) if protect_dilation > 0 else obs == OCCUPIED
         ego_x = T_f[0, 3]  # only points within reach of the sweep's ego can be in its grid
         first, last = np.searchsorted(xs, ego_x - reach, "left"), np.searchsorted(xs, ego_x + reach, "right")

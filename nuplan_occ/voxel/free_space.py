@@ -22,7 +22,7 @@ import numpy as np
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
 from nuplan_occ.voxel.traversal import grid_args
-from nuplan_occ.voxel.visibility import FREE
+from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN
 
 
 def point_support(points: np.ndarray, grid: GridSpec = DEFAULT_GRID,
@@ -55,6 +55,18 @@ def packed_free(observation: np.ndarray) -> np.ndarray:
     """The FREE voxels of an observation grid (uint8 (X, Y, Z), see `lidar_observation`) as np.packbits of
     the flat C-order grid: 1 bit per voxel (640 KB for the 400 x 400 x 32 grid)."""
     return np.packbits((np.asarray(observation) == FREE).reshape(-1))
+
+
+def unpacked_observation(observed_bits: np.ndarray, free_bits: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """The observation grid (uint8 (X, Y, Z), see `lidar_observation`) back from np.packbits of its observed
+    voxels (FREE or OCCUPIED) and its `packed_free` bits: FREE where free, OCCUPIED where observed otherwise."""
+    count = int(np.prod(grid.shape))
+    observed = np.unpackbits(np.asarray(observed_bits, dtype=np.uint8), count=count).view(bool)
+    free = np.unpackbits(np.asarray(free_bits, dtype=np.uint8), count=count).view(bool)
+    observation = np.full(count, UNKNOWN, dtype=np.uint8)
+    observation[observed] = OCCUPIED
+    observation[free] = FREE
+    return observation.reshape(grid.shape)
 
 
 def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: np.ndarray, free_bits: np.ndarray,

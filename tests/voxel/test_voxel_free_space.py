@@ -9,8 +9,9 @@ import pytest
 
 from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
-from nuplan_occ.voxel.free_space import clearable_background, free_in_other_frames, packed_free, point_support
-from nuplan_occ.voxel.visibility import FREE, lidar_observation
+from nuplan_occ.voxel.free_space import (clearable_background, free_in_other_frames, packed_free, point_support,
+                                         unpacked_observation)
+from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN, lidar_observation
 
 GRID = GridSpec(x_min=-5, x_max=5, y_min=-5, y_max=5, z_min=-1, z_max=1, voxel_size=0.25)
 GROUND_Z = -0.86  # inside layer 0 ([-1, -0.75))
@@ -72,3 +73,10 @@ def test_shapes_are_checked():
         clearable_background(occupied, point_support(returns, GRID)[:-1], ground, GRID)
     with pytest.raises(ValueError, match="packed bits"):
         free_in_other_frames(np.zeros((1, 3)), [np.eye(4)], [packed_free(observation)[:-1]], GRID)
+
+
+def test_an_observation_comes_back_whole_from_its_observed_and_free_bits():
+    observation = scene()[4]
+    assert {UNKNOWN, FREE, OCCUPIED} <= set(np.unique(observation).tolist())
+    observed_bits = np.packbits((observation != UNKNOWN).reshape(-1))
+    np.testing.assert_array_equal(unpacked_observation(observed_bits, packed_free(observation), GRID), observation)
