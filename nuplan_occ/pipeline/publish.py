@@ -6,8 +6,8 @@ Work-folder policy (`--keep-work`), applied only after the scene is published:
     default  keep what makes a param change cheap and is small: registration poses (register),
              corrected boxes and their points (track), surfaces and solids (reconstruct), and the
              manifest rows (write, so a rerun is answered without work); drop the split and filtered
-             point clouds (split, filter), the aggregated clouds (aggregate) and the scene steps of the
-             frame stream (label_map, lidar_rays), which are cheaper to recompute than to store (the frame
+             point clouds (split, filter), the aggregated clouds (aggregate), the LiDAR observations
+             (lidar_rays) and the map alignment (label_map), which are cheaper to recompute than to store (the frame
              stages themselves cache only the scene's rows, under write);
     none     drop the scene's whole work folder.
 Cache keys do not depend on the policy: a dropped entry is recomputed when a later stage needs it,
