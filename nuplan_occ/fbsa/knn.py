@@ -1,6 +1,7 @@
 """k nearest points by a compiled kd-tree: sliding-midpoint splits of the widest side into leaves of at most
 LEAF_SIZE points, then a depth-first search per query, nearer child first, pruned by each node's bounding
-box and by the k-th best distance so far.
+box and by the k-th best distance so far. A cloud's own points are searched one leaf at a time: the
+leaf's queries share a walk pruned by box-to-box distance (`knn_distances`).
 
 Distances are sqrt(dx^2 + dy^2 + dz^2) in the points' frame (metres), each row sorted ascending: the
 same values as scipy's `cKDTree.query` (which of equally distant points a tie picks may differ, the
@@ -17,6 +18,9 @@ import numpy as np
 
 LEAF_SIZE = 24
 """Most points in a leaf of the tree."""
+LEAF_SIZE_CAP = 64
+"""Rows of the per-leaf work arrays of `_self_search` (grown when a leaf holds more points: a leaf of equal
+points cannot be split)."""
 
 
 @numba.njit(cache=True)
@@ -138,6 +142,105 @@ def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.n
     return distances, indices
 
 
+@numba.njit(cache=True, inline="always")
+def _boxes_distance2(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> float:
+    total = 0.0
+    for d in range(3):
+        gap = max(lo_b[d] - hi_a[d], lo_a[d] - hi_b[d], 0.0)
+        total += gap * gap
+    return total
+
+
+@numba.njit(cache=True, inline="always")
+def _scan_leaf(ordered: np.ndarray, p: np.ndarray, s: int, e: int, best: np.ndarray, have: int, k: int) -> int:
+    """Insert the points ordered[s:e] nearer than the row's k-th best (sorted squared distances `best`,
+    `have` of them filled) into it; the new `have`."""
+    worst = best[k - 1] if have == k else np.inf
+    for i in range(s, e):
+        r = ordered[i]
+        d2 = (p[0] - r[0]) ** 2 + (p[1] - r[1]) ** 2 + (p[2] - r[2]) ** 2
+        if d2 < worst:
+            slot = have if have < k else k - 1
+            while slot > 0 and best[slot - 1] > d2:
+                best[slot] = best[slot - 1]
+                slot -= 1
+            best[slot] = d2
+            have = min(have + 1, k)
+            if have == k:
+                worst = best[k - 1]
+    return have
+
+
+@numba.njit(cache=True)
+def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
+                 lo: np.ndarray, hi: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) ascending distances from every point to its k nearest points (itself included), one leaf of
+    queries at a time: each query first takes its own leaf's points, then the leaf's queries share one walk
+    of the tree, pruned by box-to-box distance against the largest k-th best of the leaf (a query scans a
+    leaf only when that leaf's box is nearer to it than its own k-th best)."""
+    n = len(ordered)
+    distances = np.full((n, k), np.inf)
+    leaves = np.empty(n, np.int64)
+    stack = np.empty(2 * n + 1, np.int64)
+    stack_d2 = np.empty(2 * n + 1)
+    n_leaves, top = 0, 1
+    stack[0] = 0
+    while top:
+        top -= 1
+        node = stack[top]
+        if child[node] < 0:
+            leaves[n_leaves] = node
+            n_leaves += 1
+        else:
+            stack[top], stack[top + 1] = child[node] + 1, child[node]
+            top += 2
+    best = np.empty((LEAF_SIZE_CAP, k))
+    have = np.empty(LEAF_SIZE_CAP, np.int64)
+    for li in range(n_leaves):
+        leaf = leaves[li]
+        s, e = start[leaf], end[leaf]
+        m = e - s
+        if m > best.shape[0]:
+            best = np.empty((m, k))
+            have = np.empty(m, np.int64)
+        bound = 0.0
+        for q in range(m):
+            have[q] = _scan_leaf(ordered, ordered[s + q], s, e, best[q], 0, k)
+            bound = max(bound, best[q, k - 1] if have[q] == k else np.inf)
+        stack[0], stack_d2[0] = 0, 0.0
+        top = 1
+        while top:
+            top -= 1
+            node = stack[top]
+            if stack_d2[top] >= bound:
+                continue
+            first = child[node]
+            if first < 0:
+                if node == leaf:
+                    continue
+                bound = 0.0
+                for q in range(m):
+                    p = ordered[s + q]
+                    worst = best[q, k - 1] if have[q] == k else np.inf
+                    if _box_distance2(p, lo[node], hi[node]) < worst:
+                        have[q] = _scan_leaf(ordered, p, start[node], end[node], best[q], have[q], k)
+                    bound = max(bound, best[q, k - 1] if have[q] == k else np.inf)
+                continue
+            a, b = first, first + 1  # the farther child first on the stack, so the nearer one is walked first
+            da = _boxes_distance2(lo[leaf], hi[leaf], lo[a], hi[a])
+            db = _boxes_distance2(lo[leaf], hi[leaf], lo[b], hi[b])
+            if da < db:
+                a, b, da, db = b, a, db, da
+            stack[top], stack_d2[top] = a, da
+            stack[top + 1], stack_d2[top + 1] = b, db
+            top += 2
+        for q in range(m):
+            row = order[s + q]
+            for j in range(have[q]):
+                distances[row, j] = math.sqrt(best[q, j])
+    return distances
+
+
 class KdTree:
     """A kd-tree over points (n, 3) for nearest-point queries (frame of the points, metres); `data` the
     points, `n` their number (the names of scipy's cKDTree, whose query it answers the same way)."""
@@ -158,8 +261,8 @@ class KdTree:
 
 def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
     """(N, k) ascending distances (m) from each point (N, 3) to its k nearest points, itself included
-    (requires 1 <= k <= N); the points are searched in tree order, so consecutive searches share nodes."""
+    (requires 1 <= k <= N); the queries of one leaf share one walk of the tree (`_self_search`)."""
     tree = KdTree(points)
     if not 1 <= k <= tree.n:
         raise ValueError(f"knn_distances: need 1 <= k <= {tree.n} points, got k = {k}")
-    return _search(tree._ordered, *tree._nodes, tree.data, tree._nodes[0], k, np.inf)[0]
+    return _self_search(tree._ordered, *tree._nodes, k)
