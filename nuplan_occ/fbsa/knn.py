@@ -87,6 +87,29 @@ def _box_distance2(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
     return total
 
 
+@numba.njit(cache=True, inline="always")
+def _scan_leaf(ordered: np.ndarray, order: np.ndarray, p: np.ndarray, s: int, e: int, best: np.ndarray,
+               best_index: np.ndarray, have: int, k: int, bound2: float) -> int:
+    """Insert the points ordered[s:e] nearer to p than sqrt(bound2) and than the k-th best so far into the
+    sorted squared distances `best` (`have` of them filled) and their indices (order[i]); the new `have`."""
+    worst = best[k - 1] if have == k else bound2
+    for i in range(s, e):
+        r = ordered[i]
+        d2 = (p[0] - r[0]) ** 2 + (p[1] - r[1]) ** 2 + (p[2] - r[2]) ** 2
+        if d2 < worst:
+            slot = have if have < k else k - 1
+            while slot > 0 and best[slot - 1] > d2:  # insertion into the sorted k best
+                best[slot] = best[slot - 1]
+                best_index[slot] = best_index[slot - 1]
+                slot -= 1
+            best[slot] = d2
+            best_index[slot] = order[i]
+            have = min(have + 1, k)
+            if have == k:
+                worst = best[k - 1]
+    return have
+
+
 @numba.njit(cache=True)
 def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
             lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
@@ -114,20 +137,8 @@ def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.n
                 continue
             first = child[node]
             if first < 0:
-                for i in range(start[node], end[node]):
-                    r = ordered[i]
-                    d2 = (p[0] - r[0]) ** 2 + (p[1] - r[1]) ** 2 + (p[2] - r[2]) ** 2
-                    if d2 < worst:
-                        slot = have if have < k else k - 1
-                        while slot > 0 and best[slot - 1] > d2:  # insertion into the sorted k best
-                            best[slot] = best[slot - 1]
-                            best_index[slot] = best_index[slot - 1]
-                            slot -= 1
-                        best[slot] = d2
-                        best_index[slot] = order[i]
-                        have = min(have + 1, k)
-                        if have == k:
-                            worst = best[k - 1]
+                have = _scan_leaf(ordered, order, p, start[node], end[node], best, best_index, have, k, bound2)
+                worst = best[k - 1] if have == k else bound2
                 continue
             a, b = first, first + 1  # push the farther child first, so the nearer one is searched first
             da, db = _box_distance2(p, lo[a], hi[a]), _box_distance2(p, lo[b], hi[b])
@@ -149,26 +160,6 @@ def _boxes_distance2(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b:
         gap = max(lo_b[d] - hi_a[d], lo_a[d] - hi_b[d], 0.0)
         total += gap * gap
     return total
-
-
-@numba.njit(cache=True, inline="always")
-def _scan_leaf(ordered: np.ndarray, p: np.ndarray, s: int, e: int, best: np.ndarray, have: int, k: int) -> int:
-    """Insert the points ordered[s:e] nearer than the row's k-th best (sorted squared distances `best`,
-    `have` of them filled) into it; the new `have`."""
-    worst = best[k - 1] if have == k else np.inf
-    for i in range(s, e):
-        r = ordered[i]
-        d2 = (p[0] - r[0]) ** 2 + (p[1] - r[1]) ** 2 + (p[2] - r[2]) ** 2
-        if d2 < worst:
-            slot = have if have < k else k - 1
-            while slot > 0 and best[slot - 1] > d2:
-                best[slot] = best[slot - 1]
-                slot -= 1
-            best[slot] = d2
-            have = min(have + 1, k)
-            if have == k:
-                worst = best[k - 1]
-    return have
 
 
 @numba.njit(cache=True)
@@ -195,6 +186,7 @@ def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end:
             stack[top], stack[top + 1] = child[node] + 1, child[node]
             top += 2
     best = np.empty((LEAF_SIZE_CAP, k))
+    best_index = np.empty((LEAF_SIZE_CAP, k), np.int64)
     have = np.empty(LEAF_SIZE_CAP, np.int64)
     for li in range(n_leaves):
         leaf = leaves[li]
@@ -202,10 +194,11 @@ def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end:
         m = e - s
         if m > best.shape[0]:
             best = np.empty((m, k))
+            best_index = np.empty((m, k), np.int64)
             have = np.empty(m, np.int64)
         bound = 0.0
         for q in range(m):
-            have[q] = _scan_leaf(ordered, ordered[s + q], s, e, best[q], 0, k)
+            have[q] = _scan_leaf(ordered, order, ordered[s + q], s, e, best[q], best_index[q], 0, k, np.inf)
             bound = max(bound, best[q, k - 1] if have[q] == k else np.inf)
         stack[0], stack_d2[0] = 0, 0.0
         top = 1
@@ -223,7 +216,8 @@ def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end:
                     p = ordered[s + q]
                     worst = best[q, k - 1] if have[q] == k else np.inf
                     if _box_distance2(p, lo[node], hi[node]) < worst:
-                        have[q] = _scan_leaf(ordered, p, start[node], end[node], best[q], have[q], k)
+                        have[q] = _scan_leaf(ordered, order, p, start[node], end[node], best[q], best_index[q],
+                                             have[q], k, np.inf)
                     bound = max(bound, best[q, k - 1] if have[q] == k else np.inf)
                 continue
             a, b = first, first + 1  # the farther child first on the stack, so the nearer one is walked first
