@@ -88,9 +88,12 @@ def foreground_by_track(xyz: np.ndarray, owner: np.ndarray, boxes: Boxes, origin
     foreground: dict[str, np.ndarray] = {}
     origins: dict[str, np.ndarray] = {}
     box_from_frame = boxes.box_from_frame()
-    for k in np.unique(owner[owner >= 0]):
+    owned = np.flatnonzero(owner >= 0)
+    owned = owned[np.argsort(owner[owned], kind="stable")]  # grouped by box, each group in point order
+    box_ids, firsts = np.unique(owner[owned], return_index=True)
+    for k, members in zip(box_ids, np.split(owned, firsts[1:])):
         token = boxes.track_tokens[k]
-        local = transform_points(box_from_frame[k], xyz[owner == k])
+        local = transform_points(box_from_frame[k], xyz[members])
         local_origin = np.repeat(transform_points(box_from_frame[k], origin[None]), len(local), axis=0)
         if token in foreground:
             local = np.vstack([foreground[token], local])
