@@ -110,6 +110,25 @@ def _scan_leaf(ordered: np.ndarray, order: np.ndarray, p: np.ndarray, s: int, e:
     return have
 
 
+@numba.njit(cache=True, inline="always")
+def _push_children(stack: np.ndarray, stack_d2: np.ndarray, top: int, first: int, d_first: float,
+                   d_second: float) -> int:
+    """Push the children first and first + 1 of a node with their squared distances, the farther one first so
+    that the nearer one is walked first; the new stack top."""
+    a, b, da, db = first, first + 1, d_first, d_second
+    if da < db:
+        a, b, da, db = b, a, db, da
+    stack[top], stack_d2[top] = a, da
+    stack[top + 1], stack_d2[top + 1] = b, db
+    return top + 2
+
+
+@numba.njit(cache=True, inline="always")
+def _kth_best(best: np.ndarray, have: int, k: int) -> float:
+    """The k-th best squared distance of a row with `have` filled, inf while fewer than k are."""
+    return best[k - 1] if have == k else np.inf
+
+
 @numba.njit(cache=True)
 def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
             lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
@@ -140,13 +159,8 @@ def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.n
                 have = _scan_leaf(ordered, order, p, start[node], end[node], best, best_index, have, k, bound2)
                 worst = best[k - 1] if have == k else bound2
                 continue
-            a, b = first, first + 1  # push the farther child first, so the nearer one is searched first
-            da, db = _box_distance2(p, lo[a], hi[a]), _box_distance2(p, lo[b], hi[b])
-            if da < db:
-                a, b, da, db = b, a, db, da
-            stack[top], stack_d2[top] = a, da
-            stack[top + 1], stack_d2[top + 1] = b, db
-            top += 2
+            top = _push_children(stack, stack_d2, top, first, _box_distance2(p, lo[first], hi[first]),
+                                 _box_distance2(p, lo[first + 1], hi[first + 1]))
         for j in range(have):
             distances[q, j] = math.sqrt(best[j])
             indices[q, j] = best_index[j]
@@ -199,7 +213,7 @@ def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end:
         bound = 0.0
         for q in range(m):
             have[q] = _scan_leaf(ordered, order, ordered[s + q], s, e, best[q], best_index[q], 0, k, np.inf)
-            bound = max(bound, best[q, k - 1] if have[q] == k else np.inf)
+            bound = max(bound, _kth_best(best[q], have[q], k))
         stack[0], stack_d2[0] = 0, 0.0
         top = 1
         while top:
@@ -214,20 +228,14 @@ def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end:
                 bound = 0.0
                 for q in range(m):
                     p = ordered[s + q]
-                    worst = best[q, k - 1] if have[q] == k else np.inf
-                    if _box_distance2(p, lo[node], hi[node]) < worst:
+                    if _box_distance2(p, lo[node], hi[node]) < _kth_best(best[q], have[q], k):
                         have[q] = _scan_leaf(ordered, order, p, start[node], end[node], best[q], best_index[q],
                                              have[q], k, np.inf)
-                    bound = max(bound, best[q, k - 1] if have[q] == k else np.inf)
+                    bound = max(bound, _kth_best(best[q], have[q], k))
                 continue
-            a, b = first, first + 1  # the farther child first on the stack, so the nearer one is walked first
-            da = _boxes_distance2(lo[leaf], hi[leaf], lo[a], hi[a])
-            db = _boxes_distance2(lo[leaf], hi[leaf], lo[b], hi[b])
-            if da < db:
-                a, b, da, db = b, a, db, da
-            stack[top], stack_d2[top] = a, da
-            stack[top + 1], stack_d2[top + 1] = b, db
-            top += 2
+            top = _push_children(stack, stack_d2, top, first,
+                                 _boxes_distance2(lo[leaf], hi[leaf], lo[first], hi[first]),
+                                 _boxes_distance2(lo[leaf], hi[leaf], lo[first + 1], hi[first + 1]))
         for q in range(m):
             row = order[s + q]
             for j in range(have[q]):
