@@ -29,19 +29,22 @@ class FilterParams:
     first and last sweeps (`SceneData.background_positions`; 1: every sweep). nuPlan's LiDAR sweeps at 20 Hz
     and the dataset's frames are 10 Hz, so 2 takes the output sweeps; the sweeps in between repeat the same
     static scene from ~0.5 m further along (measured in bench/report-scale.md: faster and smaller on long
-    scenes, a little less background on the sub-2 s scenes of the small bench)."""
+    scenes, a little less background on the sub-2 s scenes of the small bench).
+    stride_min_sweeps: scenes with fewer loaded sweeps than this take every sweep whatever the stride (a
+    short scene has little evidence to spare; bench/report-scale.md's notes)."""
 
     method: str = "range"
     nb_neighbors: int = 8
     std_ratio: float = 2.0
     k_sigma: float = 3.0
     sweep_stride: int = 2
+    stride_min_sweeps: int = 40
 
 
 def run(inputs: dict, params: FilterParams) -> dict:
     if params.sweep_stride < 1:
         raise ValueError(f"filter: sweep_stride must be >= 1, got {params.sweep_stride}")
-    positions = inputs["scene"].background_positions(params.sweep_stride)
+    positions = inputs["scene"].background_positions(params.sweep_stride, params.stride_min_sweeps)
     used = set(positions)
     removed: list[int] = []
 

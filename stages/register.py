@@ -20,7 +20,7 @@ def run(inputs: dict, params: RegistrationParams) -> dict:
     scene = inputs["scene"]
     if params.sweep_stride < 1:
         raise ValueError(f"register: sweep_stride must be >= 1, got {params.sweep_stride}")
-    registered = set(scene.background_positions(params.sweep_stride))
+    registered = set(scene.background_positions(params.sweep_stride, params.stride_min_sweeps))
     clouds = MappedSequence(list(range(len(scene.sweeps))),
                             lambda position: inputs["background"][position] if position in registered else None)
     logged = np.stack([sweep.logged_pose for sweep in scene.sweeps])

@@ -70,6 +70,7 @@ class RegistrationParams:
     sweep_stride: used by the register stage, which registers only the sweeps of
     `SceneData.background_positions(sweep_stride)` (every output sweep and every n-th sweep in phase with them;
     1: every sweep) and passes the others as None, so their poses are interpolated (`refine_poses`).
+    stride_min_sweeps: scenes with fewer loaded sweeps than this register every sweep whatever the stride.
     """
 
     voxel_size_m: float = 0.3
@@ -91,6 +92,7 @@ class RegistrationParams:
     log_sigma_xy_m: float = 0.3
     log_sigma_deg: float = 1.0
     sweep_stride: int = 2
+    stride_min_sweeps: int = 40
 
 
 @dataclass

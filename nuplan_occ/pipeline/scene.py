@@ -143,11 +143,14 @@ class SceneData:
         """Positions (in self.sweeps) of sweeps whose points loaded."""
         return [i for i, sweep in enumerate(self.sweeps) if sweep.has_cloud]
 
-    def background_positions(self, stride: int) -> list[int]:
+    def background_positions(self, stride: int, min_sweeps: int = 0) -> list[int]:
         """Positions of the loaded sweeps to register (and, at the filter's stride, to aggregate): every output
         sweep, every `stride`-th sweep in phase with the first output sweep, and the first and last loaded
-        sweeps, so that every other sweep lies between two of them (all loaded sweeps when stride is 1)."""
+        sweeps, so that every other sweep lies between two of them. All loaded sweeps when stride is 1, or
+        when the scene has fewer than `min_sweeps` loaded sweeps (a short scene keeps all its evidence)."""
         outputs, ok = self.output_positions(), self.ok_indices()
+        if len(ok) < min_sweeps:
+            stride = 1
         phase = outputs[0] % stride if outputs else 0
         ends = {ok[0], ok[-1]} if ok else set()
         return [i for i in ok if self.sweeps[i].is_output or i % stride == phase or i in ends]

@@ -30,3 +30,11 @@ def test_an_output_sweep_out_of_phase_is_still_used():
     outputs = [True, False, True, True, False, True, False]  # an irregular output step (a dropped sweep in the log)
     scene = _scene(outputs, [True] * len(outputs))
     assert scene.background_positions(2) == [0, 2, 3, 4, 5, 6]
+
+
+def test_a_scene_shorter_than_min_sweeps_keeps_every_sweep():
+    outputs = [False, True, False, True, False, True, False, False]
+    scene = _scene(outputs, [True] * len(outputs))
+    every = list(range(len(outputs)))
+    assert scene.background_positions(2, min_sweeps=9) == every
+    assert scene.background_positions(2, min_sweeps=8) == [0, 1, 3, 5, 7]
