@@ -72,7 +72,7 @@ def placed_objects(scene, boxes: Boxes, ok_position: int, objects: dict, surface
     """The sweep's boxes (in its ego frame) with their object geometry in the box frame: a box lattice
     for box_fill_categories, else solid cell points (for sparse_solid_categories a voxel needs
     solid_min_cells of them or an observed one), else surface, else points; each with the object's own
-    points, which replace a geometry that covers fewer voxels (`PlacedObject.own_points`)."""
+    points, whose voxels are the object's too (`PlacedObject.own_points`)."""
     placed = []
     for k, track in enumerate(boxes.track_tokens):
         min_points, anchors = 1, None

@@ -51,8 +51,9 @@ class PlacedObject:
     """Raw points only (no faces): a voxel is the object's when it holds at least min_points_per_voxel of
     them, or one marked in `anchors` (V,) bool (e.g. solid cells that hold an observed point)."""
     own_points: np.ndarray | None = None
-    """(N, 3) the object's own LiDAR points in its BOX frame, or None: when its geometry covers fewer
-    voxels than these points do (an empty or degenerate surface), the points' voxels are its voxels."""
+    """(N, 3) the object's own LiDAR points in its BOX frame, or None: every voxel holding one of them is the
+    object's, besides its geometry's voxels (a return is where the object is, also where a solid's cell
+    centres or a clipped surface stop short of a voxel it reaches into; the points are not clipped again)."""
 
     def vertices_ego(self) -> np.ndarray:
         """(V, 3) vertices moved from the box frame into the ego frame."""
@@ -105,13 +106,11 @@ def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_
 
 def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill: bool = True,
                          box_margin_m: float | None = None) -> np.ndarray:
-    """(M, 3) grid indices of an object's voxels: its surface posed by its box, voxelized exactly,
+    """(M, 3) unique grid indices of an object's voxels: its surface posed by its box, voxelized exactly,
     filled when `fill`, clipped to its box grown by box_margin_m (default half a voxel) and to the grid;
-    or, when that covers fewer voxels than the object's own points, the voxels holding those points (so
-    an object with points is never lost: they lie in its box, and are not clipped again)."""
+    together with the voxels holding the object's own points (so an object with points is never lost)."""
     idx = _geometry_voxel_indices(obj, grid, fill, box_margin_m)
-    points = obj.own_point_voxels(grid)
-    return points if len(points) > len(idx) else idx
+    return np.unique(np.concatenate([idx, obj.own_point_voxels(grid)]), axis=0)
 
 
 def _geometry_voxel_indices(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> np.ndarray:

@@ -106,7 +106,7 @@ def test_sparse_solid_cells_need_company_or_an_observed_cell():
     assert len(kept & block_voxels) >= 1
 
 
-def test_an_object_whose_geometry_covers_fewer_voxels_than_its_points_gets_the_points():
+def test_an_object_holds_its_geometry_voxels_and_the_voxels_of_its_own_points():
     # a 0.4 m cone, yawed 45 deg, with 3 x 3 x 3 points 0.12 m apart in its box frame
     axis = np.array([-0.12, 0.0, 0.12])
     points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -119,8 +119,12 @@ def test_an_object_whose_geometry_covers_fewer_voxels_than_its_points_gets_the_p
     sliver_v, sliver_f = box_mesh(np.array([-0.01, -0.01, -0.01]), np.array([0.01, 0.01, 0.01]))  # one voxel
     sliver = PlacedObject(sliver_v, sliver_f, **common)
     assert {tuple(v) for v in object_voxel_indices(sliver, GRID)} == expected
-    solid_v, solid_f = box_mesh(np.array([-0.2, -0.2, -0.35]), np.array([0.2, 0.2, 0.35]))  # the whole box
-    solid = object_voxel_indices(PlacedObject(solid_v, solid_f, **common), GRID)
-    assert len(solid) > len(expected) and {tuple(v) for v in solid} != expected
+    # a solid that stops 0.05 m below the lowest points: it misses the voxels the points reach into
+    lid_v, lid_f = box_mesh(np.array([-0.2, -0.2, -0.35]), np.array([0.2, 0.2, -0.17]))
+    lid = PlacedObject(lid_v, lid_f, **common)
+    lid_alone = {tuple(v) for v in object_voxel_indices(PlacedObject(lid_v, lid_f, **{**common, "own_points": None}), GRID)}
+    got = object_voxel_indices(lid, GRID)
+    assert len(got) == len({tuple(v) for v in got})
+    assert {tuple(v) for v in got} == lid_alone | expected and not expected <= lid_alone
     grids = compose_frame(np.zeros((0, 3)), np.zeros((0, 3), int), [empty_surface], None, GRID)
     assert (grids.instance == 5).sum() == len(expected) and (grids.semantics[grids.instance == 5] == TRAFFIC_CONE).all()
