@@ -1,7 +1,8 @@
 """Stage 9, visibility (a scene pass, then a frame stage): `mask_lidar` by casting the frame's own LiDAR rays through the grid (voxels
 traversed = observed free, the return voxel = observed occupied, the rest unknown); free-space
 consistency: background voxels those rays crossed, with no aggregated point in them, above the ground
-voxel, are cleared (nuplan_occ.voxel.free_space); then `mask_camera` from the 8 cameras' frusta with
+voxel, are cleared, and so are voxels of the `clear_object_categories` that the frame's own rays crossed and
+that hold none of the objects' own points (nuplan_occ.voxel.free_space); then `mask_camera` from the 8 cameras' frusta with
 occlusion by the frame's (cleared) occupancy.
 
 Rays start at the merged LiDAR frame's origin (the only sensor pose nuPlan stores).
@@ -12,7 +13,7 @@ other frames' free space without holding their grids) and `observed_bits` (an it
 Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate` (points in ascending scene x),
 `observations`, `observed_bits`, frame inputs `grids`, `semantics`; prepared once per scene: `camera_segments` (the cameras' rays); frame outputs
 `masks` ({"mask_lidar", "mask_camera"}), `final_semantics` (`semantics` with the cleared voxels empty),
-`free_cleared` (number of voxels cleared).
+`free_cleared` (number of voxels cleared, background and objects).
 """
 
 from __future__ import annotations
@@ -23,8 +24,11 @@ import numpy as np
 
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
+from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.voxel.free_space import clearable_background, free_in_other_frames, packed_free, point_support
+from nuplan_occ.voxel.free_space import (
+    clearable_background, crossed_objects, free_in_other_frames, packed_free, point_support,
+)
 from nuplan_occ.voxel.visibility import UNKNOWN, camera_segments, lidar_observation, visible_along
 
 
@@ -37,7 +41,12 @@ class VisibilityParams:
     centre is this far above the local ground (0.2 m: the ground voxel is never cleared). Measured on the
     bench build: trail voxels 133 -> 23 (own rays) -> 0 (all output frames' rays), mIoU 0.758 -> 0.764,
     occupied IoU 0.926 -> 0.924, ground holes unchanged (margin 0.125 m the same, 0.3 m clears too little:
-    100 trails with own rays)."""
+    100 trails with own rays).
+    clear_object_categories: object categories whose voxels this frame's own rays crossed, holding none of the
+    objects' own points, are cleared (`crossed_objects`; needs `lidar`). A pedestrian is filled as its whole
+    box and a construction-zone sign's carved solid keeps cells the rays never reached; vehicles, barriers
+    and generic objects lose more voxels they partly fill than they gain (measurements in
+    bench/report-scale.md's notes)."""
 
     lidar: bool = True
     camera: bool = True
@@ -45,6 +54,7 @@ class VisibilityParams:
     clear_free_space: bool = True
     free_space_ground_margin_m: float = 0.2
     free_space_other_frames: bool = True
+    clear_object_categories: tuple[str, ...] = ("pedestrian", "czone_sign")
 
 
 @dataclass
@@ -103,6 +113,12 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
                                      inputs["background_aggregate"], frame["grids"], semantics, params)
             semantics[clear] = 0
             cleared = int(clear.sum())
+        if params.clear_object_categories:
+            classes = tuple(LABELS.box_category_to_id[c] for c in params.clear_object_categories)
+            crossed = crossed_objects(semantics, classes, frame["grids"].object_points,
+                                      observations.free[observations.row(token)], DEFAULT_GRID)
+            semantics[crossed] = 0
+            cleared += int(crossed.sum())
     if inputs["camera_segments"] is not None:
         masks["mask_camera"] = visible_along(semantics > 0, inputs["camera_segments"], DEFAULT_GRID)
     return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}

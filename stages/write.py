@@ -7,7 +7,8 @@ Inputs: `scene`, `registration`, `outliers_removed`, `map_status`, `map_alignmen
 `object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`); prepared once per scene: `ego_speeds`;
 frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`. Frame output: `record` (FrameRecord). A
 row's `ego_to_global` is the refined pose corrected by the scene's map alignment: the pose the frame's labels
-were rasterized with, so the map drawn with it lands where the grid says.
+were rasterized with, so the map drawn with it lands where the grid says. Instance ids and flow are 0 in the
+voxels the visibility stage emptied.
 """
 
 from __future__ import annotations
@@ -57,6 +58,17 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
     return columns
 
 
+def without_cleared(instance: np.ndarray, flow: np.ndarray, semantics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The instance ids (X, Y, Z) and flow (X, Y, Z, 3) with 0 in the voxels the visibility stage emptied
+    (semantics 0); the inputs themselves when it emptied no object voxel."""
+    stale = (instance > 0) & (semantics == 0)
+    if not stale.any():
+        return instance, flow
+    instance, flow = instance.copy(), flow.copy()
+    instance[stale], flow[stale] = 0, 0
+    return instance, flow
+
+
 def prepare(inputs: dict, params: WriteParams) -> dict:
     """Once per scene: `ego_speeds` (F,) m/s of every sweep from its refined pose (`ego_speeds`)."""
     scene = inputs["scene"]
@@ -80,14 +92,15 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
         record.status, record.failure_reason = "failed", frame["failure"]
         return {"record": record}
     grids, semantics = frame["grids"], frame["final_semantics"]
-    arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow, **frame["masks"]}
+    instance, flow = without_cleared(grids.instance, grids.flow, semantics)
+    arrays = {"semantics": semantics, "instance": instance, "flow": flow, **frame["masks"]}
     record.arrays = {name: arrays[name] for name in params.members if name in arrays}
     columns["qa_point_coverage"] = point_coverage(sweep.xyz, semantics > 0)
     columns["qa_occupied_voxels"] = int((semantics > 0).sum())
     columns["qa_free_space_cleared"] = int(frame["free_cleared"])
     columns["qa_unboxed_mover_voxels"] = int(grids.mover_voxels)
     columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
-                                     scene.instance_ids, semantics, grids.instance))
+                                     scene.instance_ids, semantics, instance))
     if "mask_lidar" in arrays:
         columns["qa_lidar_observed_fraction"] = float(arrays["mask_lidar"].mean())
     return {"record": record}

@@ -76,7 +76,8 @@ class FrameGrids:
     """A frame's grids in the ego frame: semantics uint8 (X, Y, Z) label ids; instance uint16 (0 =
     background/empty); flow float16 (X, Y, Z, 3) m/s; occupied_background bool (X, Y, Z): background
     voxels kept (not overwritten by objects); ground_height float (X, Y) metres (NaN unknown);
-    mover_voxels: voxels painted for unboxed movers (nuplan_occ.voxel.movers), 0 when none were."""
+    mover_voxels: voxels painted for unboxed movers (nuplan_occ.voxel.movers), 0 when none were;
+    object_points bool (X, Y, Z): voxels holding an own point of a placed object (`PlacedObject.own_points`)."""
 
     semantics: np.ndarray
     instance: np.ndarray
@@ -84,6 +85,7 @@ class FrameGrids:
     occupied_background: np.ndarray
     ground_height: np.ndarray | None = None
     mover_voxels: int = 0
+    object_points: np.ndarray | None = None
 
 
 def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_count: int,
@@ -109,8 +111,13 @@ def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill:
     """(M, 3) unique grid indices of an object's voxels: its surface posed by its box, voxelized exactly,
     filled when `fill`, clipped to its box grown by box_margin_m (default half a voxel) and to the grid;
     together with the voxels holding the object's own points (so an object with points is never lost)."""
-    idx = _geometry_voxel_indices(obj, grid, fill, box_margin_m)
-    return np.unique(np.concatenate([idx, obj.own_point_voxels(grid)]), axis=0)
+    return _object_voxels(obj, grid, fill, box_margin_m)[0]
+
+
+def _object_voxels(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(`object_voxel_indices`, the voxels holding its own points)."""
+    points = obj.own_point_voxels(grid)
+    return np.unique(np.concatenate([_geometry_voxel_indices(obj, grid, fill, box_margin_m), points]), axis=0), points
 
 
 def _geometry_voxel_indices(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> np.ndarray:
@@ -165,8 +172,10 @@ def compose_frame(background_vertices: np.ndarray, background_faces: np.ndarray,
     flow = np.zeros((*grid.shape, 3), dtype=np.float16)
     object_class = np.zeros(grid.shape, dtype=np.uint8)
     painted = [np.zeros((0, 3), dtype=np.int64)]
+    object_points = np.zeros(grid.shape, dtype=bool)
     for obj in objects:
-        idx = object_voxel_indices(obj, grid, fill_objects, margin)
+        idx, points = _object_voxels(obj, grid, fill_objects, margin)
+        object_points[tuple(points.T)] = True
         i, j, k = idx[:, 0], idx[:, 1], idx[:, 2]
         object_class[i, j, k] = obj.class_id
         instance[i, j, k] = obj.instance_id
@@ -187,4 +196,4 @@ def compose_frame(background_vertices: np.ndarray, background_faces: np.ndarray,
     else:
         semantics = label_background(background, bev, grid, ground_tolerance_m, ground_height)
     semantics[i, j, k] = object_class[i, j, k]
-    return FrameGrids(semantics, instance, flow, background, ground_height)
+    return FrameGrids(semantics, instance, flow, background, ground_height, object_points=object_points)

@@ -51,6 +51,26 @@ def clearable_background(occupied_background: np.ndarray, support: np.ndarray, g
     return occupied_background & ~support & above_ground
 
 
+def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_points: np.ndarray, own_free_bits: np.ndarray,
+                    grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """bool (X, Y, Z): voxels labeled one of `classes` (ids) that the frame's own rays crossed (set in its
+    `packed_free` bits own_free_bits) and that hold none of the objects' own points (object_points bool
+    (X, Y, Z), `FrameGrids.object_points`). An object is where it is at this frame's time, so only this
+    frame's rays speak about it; a voxel it only partly fills is crossed by rays that miss it, but usually
+    also holds one of its points, which keeps it."""
+    if tuple(semantics.shape) != tuple(grid.shape) or tuple(object_points.shape) != tuple(grid.shape):
+        raise ValueError(f"crossed_objects: grids have shapes {semantics.shape} / {object_points.shape}, expected {grid.shape}")
+    wanted = np.zeros(256, dtype=bool)
+    wanted[list(classes)] = True
+    candidates = wanted[semantics] & ~object_points
+    flat = np.flatnonzero(candidates)
+    bits = np.asarray(own_free_bits, dtype=np.uint8)
+    crossed = (bits[flat >> 3] >> (7 - (flat & 7)).astype(np.uint8)) & 1
+    out = np.zeros(candidates.size, dtype=bool)
+    out[flat[crossed.astype(bool)]] = True
+    return out.reshape(grid.shape)
+
+
 def packed_free(observation: np.ndarray) -> np.ndarray:
     """The FREE voxels of an observation grid (uint8 (X, Y, Z), see `lidar_observation`) as np.packbits of
     the flat C-order grid: 1 bit per voxel (640 KB for the 400 x 400 x 32 grid)."""

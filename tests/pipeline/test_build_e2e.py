@@ -10,6 +10,7 @@ import pytest
 
 from nuplan_occ.dataset import open_dataset
 from nuplan_occ.io.reader import NuplanLog
+from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.build import run_build
 from nuplan_occ.storage import read_manifest
 from nuplan_occ.storage.digest import content_digests
@@ -69,6 +70,11 @@ def test_build_end_to_end_default_method_with_bad_blobs(bad_blobs_build):
     assert frame["semantics"].shape == (400, 400, 32) and frame["semantics"].dtype == np.uint8
     assert {"mask_lidar", "mask_camera", "instance", "flow"} <= set(frame)
     assert (frame["semantics"] > 0).sum() > 10_000
+    boxed = sorted(LABELS.box_category_to_id.values())
+    for index in range(len(ds)):  # instance ids and flow only where an object voxel is, after free-space clearing
+        grids = ds.get(index, keys=("semantics", "instance", "flow"))
+        on_object = np.isin(grids["semantics"], boxed)
+        assert not np.any(grids["instance"][~on_object]) and not np.any(grids["flow"][~on_object])
 
     before = tree_digest(out)
     again = run_build(data_root, str(out), build_params(fast=False))

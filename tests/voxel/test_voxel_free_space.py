@@ -1,6 +1,7 @@
 """Free-space consistency: a ground bulge rays cross is cleared, by this frame's rays or another frame's
 (moved into this frame's grid); the ground voxel, measured voxels and columns without a ground estimate
-are kept."""
+are kept. Object voxels of the chosen classes that the frame's own rays crossed are cleared unless they
+hold one of the objects' points."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import pytest
 
 from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
-from nuplan_occ.voxel.free_space import (clearable_background, free_in_other_frames, packed_free, point_support,
-                                         unpacked_observation)
+from nuplan_occ.labels import LABELS
+from nuplan_occ.voxel.free_space import (clearable_background, crossed_objects, free_in_other_frames, packed_free,
+                                         point_support, unpacked_observation)
 from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN, lidar_observation
 
 GRID = GridSpec(x_min=-5, x_max=5, y_min=-5, y_max=5, z_min=-1, z_max=1, voxel_size=0.25)
@@ -80,3 +82,21 @@ def test_an_observation_comes_back_whole_from_its_observed_and_free_bits():
     assert {UNKNOWN, FREE, OCCUPIED} <= set(np.unique(observation).tolist())
     observed_bits = np.packbits((observation != UNKNOWN).reshape(-1))
     np.testing.assert_array_equal(unpacked_observation(observed_bits, packed_free(observation), GRID), observation)
+
+
+def test_object_voxels_the_rays_crossed_are_cleared_unless_they_hold_an_object_point():
+    pedestrian, vehicle = LABELS.box_category_to_id["pedestrian"], LABELS.box_category_to_id["vehicle"]
+    # one ray from the origin along +x at y = z = 0.1 (voxel row y 20, z 4), returning at x = 4.8
+    observation = lidar_observation(np.array([[4.8, 0.1, 0.1]]), np.zeros(3), GRID)
+    semantics = np.zeros(GRID.shape, dtype=np.uint8)
+    held, crossed, other_class, aside = (24, 20, 4), (28, 20, 4), (32, 20, 4), (28, 25, 4)
+    for voxel, label in ((held, pedestrian), (crossed, pedestrian), (other_class, vehicle), (aside, pedestrian)):
+        semantics[voxel] = label
+    object_points = np.zeros(GRID.shape, dtype=bool)
+    object_points[held] = True  # a point of the pedestrian from a neighbouring sweep
+    assert observation[held] == observation[crossed] == observation[other_class] == FREE
+    assert observation[aside] == UNKNOWN
+    cleared = crossed_objects(semantics, (pedestrian,), object_points, packed_free(observation), GRID)
+    assert {tuple(v) for v in np.argwhere(cleared)} == {crossed}
+    both = crossed_objects(semantics, (pedestrian, vehicle), object_points, packed_free(observation), GRID)
+    assert {tuple(v) for v in np.argwhere(both)} == {crossed, other_class}
