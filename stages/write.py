@@ -58,15 +58,13 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
     return columns
 
 
-def without_cleared(instance: np.ndarray, flow: np.ndarray, semantics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The instance ids (X, Y, Z) and flow (X, Y, Z, 3) with 0 in the voxels the visibility stage emptied
-    (semantics 0); the inputs themselves when it emptied no object voxel."""
+def zero_cleared(instance: np.ndarray, flow: np.ndarray, semantics: np.ndarray) -> None:
+    """Set instance ids (X, Y, Z) and flow (X, Y, Z, 3) to 0, in place, in the voxels the visibility stage
+    emptied (semantics 0). The frame's grids end with this stage, so nothing else reads them afterwards."""
     stale = (instance > 0) & (semantics == 0)
-    if not stale.any():
-        return instance, flow
-    instance, flow = instance.copy(), flow.copy()
-    instance[stale], flow[stale] = 0, 0
-    return instance, flow
+    if stale.any():
+        instance[stale] = 0
+        flow[stale] = 0
 
 
 def prepare(inputs: dict, params: WriteParams) -> dict:
@@ -92,15 +90,15 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
         record.status, record.failure_reason = "failed", frame["failure"]
         return {"record": record}
     grids, semantics = frame["grids"], frame["final_semantics"]
-    instance, flow = without_cleared(grids.instance, grids.flow, semantics)
-    arrays = {"semantics": semantics, "instance": instance, "flow": flow, **frame["masks"]}
+    zero_cleared(grids.instance, grids.flow, semantics)
+    arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow, **frame["masks"]}
     record.arrays = {name: arrays[name] for name in params.members if name in arrays}
     columns["qa_point_coverage"] = point_coverage(sweep.xyz, semantics > 0)
     columns["qa_occupied_voxels"] = int((semantics > 0).sum())
     columns["qa_free_space_cleared"] = int(frame["free_cleared"])
     columns["qa_unboxed_mover_voxels"] = int(grids.mover_voxels)
     columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
-                                     scene.instance_ids, semantics, instance))
+                                     scene.instance_ids, semantics, grids.instance))
     if "mask_lidar" in arrays:
         columns["qa_lidar_observed_fraction"] = float(arrays["mask_lidar"].mean())
     return {"record": record}

@@ -117,7 +117,9 @@ def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill:
 def _object_voxels(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> tuple[np.ndarray, np.ndarray]:
     """(`object_voxel_indices`, the voxels holding its own points)."""
     points = obj.own_point_voxels(grid)
-    return np.unique(np.concatenate([_geometry_voxel_indices(obj, grid, fill, box_margin_m), points]), axis=0), points
+    both = np.concatenate([_geometry_voxel_indices(obj, grid, fill, box_margin_m), points])
+    flat = np.unique(np.ravel_multi_index(both.T, grid.shape))  # both are inside the grid; C order = sorted rows
+    return np.stack(np.unravel_index(flat, grid.shape), axis=1).astype(np.int64), points
 
 
 def _geometry_voxel_indices(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> np.ndarray:
