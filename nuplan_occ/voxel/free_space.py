@@ -62,13 +62,12 @@ def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_poin
         raise ValueError(f"crossed_objects: grids have shapes {semantics.shape} / {object_points.shape}, expected {grid.shape}")
     wanted = np.zeros(256, dtype=bool)
     wanted[list(classes)] = True
-    candidates = wanted[semantics] & ~object_points
-    flat = np.flatnonzero(candidates)
-    bits = np.asarray(own_free_bits, dtype=np.uint8)
-    crossed = (bits[flat >> 3] >> (7 - (flat & 7)).astype(np.uint8)) & 1
-    out = np.zeros(candidates.size, dtype=bool)
-    out[flat[crossed.astype(bool)]] = True
-    return out.reshape(grid.shape)
+    candidates = np.argwhere(wanted[semantics] & ~object_points)
+    crossed = free_in_other_frames(grid.index_to_center(candidates), np.eye(4)[None],
+                                   np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
+    out = np.zeros(grid.shape, dtype=bool)
+    out[tuple(candidates[crossed].T)] = True
+    return out
 
 
 def packed_free(observation: np.ndarray) -> np.ndarray:
