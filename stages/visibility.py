@@ -34,7 +34,9 @@ from nuplan_occ.voxel.visibility import UNKNOWN, camera_segments, lidar_observat
 
 @dataclass(frozen=True)
 class VisibilityParams:
-    """camera_max_range_m: farthest distance a camera is taken to observe. clear_free_space: clear
+    """camera_max_range_m: farthest distance a camera is taken to observe; camera_range_bands: the camera rays'
+    range bands (`nuplan_occ.voxel.visibility`; 1 = one lattice fine enough for max range, 3 takes half the
+    time at 0.9 % of the mask's voxels changed: bench/report-scale.md's notes). clear_free_space: clear
     background voxels that rays show empty (needs `lidar`): the frame's own rays, and with
     free_space_other_frames those of the scene's other output frames too (the background is static; their
     FREE grids are kept as packed bits, 640 KB a frame); free_space_ground_margin_m: only voxels whose
@@ -51,6 +53,7 @@ class VisibilityParams:
     lidar: bool = True
     camera: bool = True
     camera_max_range_m: float = 60.0
+    camera_range_bands: int = 3
     clear_free_space: bool = True
     free_space_ground_margin_m: float = 0.2
     free_space_other_frames: bool = True
@@ -95,7 +98,8 @@ def prepare(inputs: dict, params: VisibilityParams) -> dict:
     if params.lidar and params.clear_free_space and np.any(np.diff(inputs["background_aggregate"].points[:, 0]) < 0):
         raise ValueError("visibility: the background aggregate's points are not in ascending scene x")
     use = params.camera and bool(scene.cameras)
-    return {"camera_segments": camera_segments(scene.cameras, DEFAULT_GRID, params.camera_max_range_m) if use else None}
+    return {"camera_segments": camera_segments(scene.cameras, DEFAULT_GRID, params.camera_max_range_m,
+                                                range_bands=params.camera_range_bands) if use else None}
 
 
 def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:

@@ -131,10 +131,13 @@ def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
 
 
 @numba.njit(cache=True)
-def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, visible):
+def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, resume_t, resume, visible,
+                              reached):
     """visible[v] = True for the entries v of each segment starts -> ends ((N, 3) m) with t <= t_hit, its
     first blocking entry's t (the least t >= t_block of an entry whose voxel is occupied; all entries when
-    none blocks). occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
+    none blocks). resume[r] says which part of segment r is walked: 0 none, 1 from t = resume_t on (the part
+    before stands for one that other rays walked), 2 all of it. reached[r] = True when segment r ends (t = 1) inside the grid with no blocking entry.
+    occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
 
     Per segment, each axis' crossings are recorded WALK_PAD at a time and scanned in order of t until the
     first blocking one or past the t_hit found so far (the axis with the most crossings first: the others
@@ -144,8 +147,13 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
     size = shape.max() + 1 + WALK_PAD
     walk_t, walk_v = np.empty(3 * size), np.empty(3 * size, np.int64)
     for r in range(starts.shape[0]):
+        reached[r] = False
+        if resume[r] == 0:
+            continue
         meets, ox, oy, oz, dx, dy, dz, t0, t1, inv = _segment(starts, ends, r, lower, voxel_size, shape)
-        if not meets:
+        if resume[r] == 1:
+            t0 = max(t0, resume_t)
+        if not meets or t0 >= t1:
             continue
         t_hit = np.inf
         v_start = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
@@ -178,6 +186,7 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
                 walked_y = m
             else:
                 walked_z = m
+        reached[r] = t_hit == np.inf and t1 >= 1.0
         if v_start >= 0 and t0 <= t_hit:
             visible[v_start] = True
         for a in range(3):

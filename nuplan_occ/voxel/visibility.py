@@ -9,11 +9,18 @@ the rest unknown.
 
 Camera (mask_camera): pinhole model with the calibration's K (lens distortion ignored: the frustum is
 that of the undistorted image), OpenCV camera axes (x right, y down, z forward) for T_ego_from_camera.
-Rays are cast through a sub-sampled pixel lattice whose angular step is `voxel_size / max_range_m`
-(adjacent rays are at most one voxel apart at max range); along each ray the voxels up to and including
-the first occupied one (and within max_range_m) are visible. Occupied voxels closer than `near_m` to the
-camera (its own vehicle) do not occlude. Each ray is marched voxel by voxel and stops at its first
-occupied voxel, so the voxels behind an obstacle are never visited.
+Along each ray the voxels up to and including the first occupied one (and within max_range_m) are
+visible; occupied voxels closer than `near_m` to the camera (its own vehicle) do not occlude. Rays are
+cast through sub-sampled pixel lattices, one per range band: the bands end at max_range_m / 2**k
+(k = range_bands - 1, ..., 0) and begin where the previous one ends, and a band's lattice has the angular
+step voxel_size / (its far end), so adjacent rays are at most one voxel apart anywhere in their band
+(the nearest band's rays are 4**(range_bands - 1) times fewer than a max-range lattice's). A ray of a
+band is a segment from its camera to the band's far end. Its parent is the previous band's ray whose
+pixel cell holds its pixel; it is walked from the band's near end when the parent and the 8 rays around
+the parent all reached their far end unblocked, not at all when none of them did, and whole (from the
+camera) where they disagree (an occluder's edge), so the edges are as exact as a max-range lattice's.
+Each ray is marched voxel by voxel and stops at its first occupied voxel, so the voxels behind an
+obstacle are never visited. range_bands = 1 is the single max-range lattice.
 """
 
 from __future__ import annotations
@@ -61,17 +68,24 @@ def lidar_visibility(points_ego: np.ndarray, origins_ego: np.ndarray, grid: Grid
     return lidar_observation(points_ego, origins_ego, grid) != UNKNOWN
 
 
+def _pixel_lattice(camera: CameraCalibration, angular_step_rad: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Pixel centres u (across), v (down) of a lattice over the camera's image with about `angular_step_rad`
+    between neighbours, and its cell sizes (pixels): cell i of u covers [i * step_u, (i + 1) * step_u)."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    step_u = max(1.0, K[0, 0] * angular_step_rad)
+    step_v = max(1.0, K[1, 1] * angular_step_rad)
+    return np.arange(step_u / 2.0, camera.width, step_u), np.arange(step_v / 2.0, camera.height, step_v), step_u, step_v
+
+
 def camera_rays(camera: CameraCalibration, angular_step_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """Origin (3,) and unit directions (R, 3) in the ego frame of rays through a pixel lattice of the
-    camera's image with about `angular_step_rad` between neighbours (pinhole, OpenCV axes)."""
+    camera's image with about `angular_step_rad` between neighbours (pinhole, OpenCV axes); ray
+    i * len(v) + j goes through pixel (u[i], v[j]) of `_pixel_lattice`."""
     K = np.asarray(camera.K, dtype=np.float64)
     T = np.asarray(camera.T_ego_from_camera, dtype=np.float64)
     if K.shape != (3, 3) or T.shape != (4, 4) or K[0, 0] <= 0 or K[1, 1] <= 0 or camera.width <= 0 or camera.height <= 0:
         raise VisibilityError(f"camera {camera.channel}: invalid intrinsics/extrinsics/size")
-    step_u = max(1.0, K[0, 0] * angular_step_rad)
-    step_v = max(1.0, K[1, 1] * angular_step_rad)
-    u = np.arange(step_u / 2.0, camera.width, step_u)
-    v = np.arange(step_v / 2.0, camera.height, step_v)
+    u, v, _, _ = _pixel_lattice(camera, angular_step_rad)
     U, V = np.meshgrid(u, v, indexing="ij")
     x = (U.ravel() - K[0, 2] - K[0, 1] * (V.ravel() - K[1, 2]) / K[1, 1]) / K[0, 0]
     y = (V.ravel() - K[1, 2]) / K[1, 1]
@@ -80,43 +94,92 @@ def camera_rays(camera: CameraCalibration, angular_step_rad: float) -> tuple[np.
     return T[:3, 3].copy(), d_cam @ T[:3, :3].T
 
 
+def _parent_cells(child: tuple, parent: tuple) -> np.ndarray:
+    """(len(u) * len(v), 9) int64: per ray of the child lattice (`_pixel_lattice` of one camera), the
+    parent lattice's rays of the cell holding its pixel (the last cell for a pixel past the last whole cell)
+    and of the 8 cells around it (clipped at the image border), as ray indices of the parent lattice."""
+    u, v, _, _ = child
+    pu, pv, step_u, step_v = parent
+    iu = np.minimum((u / step_u).astype(np.int64), len(pu) - 1)
+    iv = np.minimum((v / step_v).astype(np.int64), len(pv) - 1)
+    around = np.arange(-1, 2)
+    cu = np.clip(iu[:, None] + around, 0, len(pu) - 1)  # (len(u), 3)
+    cv = np.clip(iv[:, None] + around, 0, len(pv) - 1)  # (len(v), 3)
+    cells = cu[:, None, :, None] * len(pv) + cv[None, :, None, :]  # (len(u), len(v), 3, 3)
+    return cells.reshape(len(u) * len(v), 9)
+
+
 @dataclass(frozen=True)
-class CameraSegments:
-    """The camera rays of a rig as segments (ego frame, m): starts, ends (R, 3), each from its camera's
-    origin to max_range_m along the ray; t_block: the fraction of a segment before which occupied voxels do
-    not occlude (near_m / max_range_m)."""
+class RayBand:
+    """The camera rays of one range band (ego frame, m): starts (R, 3) their cameras' origins, ends (R, 3)
+    at the band's far end along the ray; resume_t: the band's near end as a fraction of a segment; t_block:
+    the fraction before which occupied voxels do not occlude (near_m / far end); parents: (R, 9) int64, the
+    previous band's rays of the parent cell and its 8 neighbours (None for the nearest band)."""
 
     starts: np.ndarray
     ends: np.ndarray
+    resume_t: float
     t_block: float
+    parents: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class CameraSegments:
+    """The camera rays of a rig by range band, nearest first (see module doc)."""
+
+    bands: list[RayBand]
 
 
 def camera_segments(cameras: list[CameraCalibration], grid: GridSpec = DEFAULT_GRID, max_range_m: float = 60.0,
-                    angular_step_rad: float | None = None, near_m: float = 0.5) -> CameraSegments:
-    """The rays of all cameras (see module doc; angular step voxel_size / max_range_m by default)."""
-    step = grid.voxel_size / max_range_m if angular_step_rad is None else angular_step_rad
-    starts, ends = [np.zeros((0, 3))], [np.zeros((0, 3))]
-    for camera in cameras:
-        origin, dirs = camera_rays(camera, step)
-        starts.append(np.broadcast_to(origin, dirs.shape))
-        ends.append(starts[-1] + dirs * max_range_m)
-    return CameraSegments(np.concatenate(starts), np.concatenate(ends), near_m / max_range_m)
+                    angular_step_rad: float | None = None, near_m: float = 0.5, range_bands: int = 3) -> CameraSegments:
+    """The rays of all cameras in `range_bands` range bands (see module doc); angular_step_rad: the step of
+    the farthest band's lattice (voxel_size / max_range_m by default), doubled per nearer band."""
+    if range_bands < 1:
+        raise VisibilityError(f"camera_segments: range_bands must be >= 1, got {range_bands}")
+    far_step = grid.voxel_size / max_range_m if angular_step_rad is None else angular_step_rad
+    bands, previous = [], None
+    for k in reversed(range(range_bands)):
+        far, near = max_range_m / 2**k, (max_range_m / 2 ** (k + 1) if k < range_bands - 1 else 0.0)
+        starts, ends, parents, placed = [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros((0, 9), np.int64)], []
+        for c, camera in enumerate(cameras):
+            origin, dirs = camera_rays(camera, far_step * 2**k)
+            lattice, first = _pixel_lattice(camera, far_step * 2**k), sum(len(s) for s in starts)
+            starts.append(np.broadcast_to(origin, dirs.shape))
+            ends.append(origin + dirs * far)
+            if previous is not None:
+                parent_lattice, parent_first = previous[c]
+                parents.append(_parent_cells(lattice, parent_lattice) + parent_first)
+            placed.append((lattice, first))
+        bands.append(RayBand(np.concatenate(starts), np.concatenate(ends), near / far, near_m / far,
+                             np.concatenate(parents) if previous is not None else None))
+        previous = placed
+    return CameraSegments(bands)
 
 
 def visible_along(occupied: np.ndarray, segments: CameraSegments, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
-    """bool (X, Y, Z): the voxels of each segment up to and including its first occupied one not before
-    segments.t_block. occupied: bool (X, Y, Z) in the ego frame."""
+    """bool (X, Y, Z): the voxels the camera rays `segments` see (module doc), each ray's up to and including
+    its first occupied one. occupied: bool (X, Y, Z) in the ego frame."""
     if tuple(occupied.shape) != tuple(grid.shape):
         raise VisibilityError(f"camera_visibility: occupied has shape {occupied.shape}, grid {grid.shape}")
     occ = np.asarray(occupied, dtype=bool).ravel()
     visible = np.zeros(occ.shape, dtype=bool)
-    mark_visible_to_first_hit(segments.starts, segments.ends, *grid_args(grid), occ, segments.t_block, visible)
+    reached = np.zeros(0, dtype=bool)
+    for band in segments.bands:
+        if band.parents is None:
+            resume = np.full(len(band.ends), 2, dtype=np.int8)
+        else:
+            open_around = reached[band.parents]
+            resume = np.where(open_around.all(axis=1), 1, np.where(open_around.any(axis=1), 2, 0)).astype(np.int8)
+        reached = np.empty(len(band.ends), dtype=bool)
+        mark_visible_to_first_hit(band.starts, band.ends, *grid_args(grid), occ, band.t_block, band.resume_t, resume,
+                                  visible, reached)
     return visible.reshape(grid.shape)
 
 
 def camera_visibility(occupied: np.ndarray, cameras: list[CameraCalibration], grid: GridSpec = DEFAULT_GRID,
                       max_range_m: float = 60.0, angular_step_rad: float | None = None,
-                      near_m: float = 0.5) -> np.ndarray:
+                      near_m: float = 0.5, range_bands: int = 3) -> np.ndarray:
     """bool (X, Y, Z) mask_camera: voxels some camera sees (see module doc). occupied: bool (X, Y, Z)
     occupancy in the ego frame; cameras: calibrations with T_ego_from_camera."""
-    return visible_along(occupied, camera_segments(cameras, grid, max_range_m, angular_step_rad, near_m), grid)
+    return visible_along(occupied, camera_segments(cameras, grid, max_range_m, angular_step_rad, near_m, range_bands),
+                         grid)

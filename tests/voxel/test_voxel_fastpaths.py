@@ -26,12 +26,15 @@ def clip_to_box(o, d, shape):
     return np.maximum(t_lo.max(axis=1), 0.0), np.minimum(t_hi.min(axis=1), 1.0)
 
 
-def reference_entries(starts, ends, grid):
-    """(ray, flat voxel, t) of every voxel entered by each segment over its whole length."""
+def reference_entries(starts, ends, grid, t_from=None):
+    """(ray, flat voxel, t) of every voxel entered by each segment over its whole length (from t_from (N,) on
+    where given)."""
     shape = np.asarray(grid.shape)
     o_all = (starts - grid.lower) / grid.voxel_size
     d_all = (ends - grid.lower) / grid.voxel_size - o_all
     t0, t1 = clip_to_box(o_all, d_all, shape.astype(np.float64))
+    if t_from is not None:
+        t0 = np.maximum(t0, t_from)
     rays = np.flatnonzero(t0 < t1)
     o, d, t0, t1 = o_all[rays], d_all[rays], t0[rays], t1[rays]
     a, b = o + t0[:, None] * d, o + t1[:, None] * d
@@ -95,26 +98,85 @@ def camera(yaw, position, f=60.0):
     return CameraCalibration("c", "CAM", "pinhole", K, np.zeros(5), make_transform(R, position), 128, 72)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_camera_visibility_equals_full_traversal(seed):
+def first_hit_entries(starts, ends, occupied, t_block, t_from=None):
+    """Per segment (whole, or from t_from (N,) on): the flat voxels up to its first blocking entry, and
+    whether it ends (t = 1) inside the grid unblocked."""
+    ids, flat, t = reference_entries(starts, ends, GRID, t_from)
+    blocking = occupied.ravel()[flat] & (t >= t_block)
+    t_hit = np.full(len(starts), np.inf)
+    np.minimum.at(t_hit, ids[blocking], t[blocking])
+    o = (starts - GRID.lower) / GRID.voxel_size
+    t0, t1 = clip_to_box(o, (ends - GRID.lower) / GRID.voxel_size - o, np.asarray(GRID.shape, np.float64))
+    met = t0 < t1 if t_from is None else np.maximum(t0, t_from) < t1
+    return flat[t <= t_hit[ids]], met & (t1 >= 1.0) & np.isinf(t_hit)
+
+
+def scene_for_cameras(seed):
     rng = np.random.default_rng(seed)
     occupied = rng.random(GRID.shape) < 0.01
     occupied[:, :, 5] |= rng.random(GRID.shape[:2]) < 0.8  # a leaky ground layer
     cams = [camera(rng.uniform(-np.pi, np.pi), rng.uniform(-1, 1, 3) * [4, 3, 0.5]) for _ in range(3)]
     cams.append(camera(0.0, np.array([-5.9, 0.0, 0.0])))  # axis-parallel rays from near the border
+    return occupied, cams
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_camera_visibility_of_one_band_equals_full_traversal(seed):
+    occupied, cams = scene_for_cameras(seed)
     max_range, step, near = 14.0, 0.25 / 14.0, 0.5
     expected = np.zeros(occupied.size, bool)
     for cam in cams:
         origin, dirs = camera_rays(cam, step)
         starts = np.broadcast_to(origin, dirs.shape)
-        ids, flat, t = reference_entries(starts, starts + dirs * max_range, GRID)
-        blocking = occupied.ravel()[flat] & (t >= near / max_range)
-        t_hit = np.full(len(dirs), np.inf)
-        np.minimum.at(t_hit, ids[blocking], t[blocking])
-        expected[flat[t <= t_hit[ids]]] = True
-    got = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near)
+        seen, _ = first_hit_entries(starts, starts + dirs * max_range, occupied, near / max_range)
+        expected[seen] = True
+    got = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near, range_bands=1)
     assert np.array_equal(got.ravel(), expected)
     assert 0 < got.sum() < got.size
+
+
+def pixel_cells(cam, step):
+    """Pixel lattice (u, v centres) of a camera at angular step `step`, and its cell sizes."""
+    su, sv = max(1.0, cam.K[0, 0] * step), max(1.0, cam.K[1, 1] * step)
+    return np.arange(su / 2, cam.width, su), np.arange(sv / 2, cam.height, sv), su, sv
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_camera_visibility_by_range_bands_follows_the_band_rule(seed):
+    """Bands end at 3.5, 7 and 14 m; a ray resumes at its band's near end when the previous band's 3 x 3 rays
+    around its pixel all reached it unblocked, is skipped when none did, and is walked whole otherwise."""
+    occupied, cams = scene_for_cameras(seed)
+    max_range, near = 14.0, 0.5
+    expected = np.zeros(occupied.size, bool)
+    for cam in cams:
+        reached, previous = None, None
+        for far in (3.5, 7.0, 14.0):
+            step = 0.25 / far
+            origin, dirs = camera_rays(cam, step)
+            starts = np.broadcast_to(origin, dirs.shape)
+            u, v, _, _ = pixel_cells(cam, step)
+            if reached is None:
+                walk = np.ones(len(dirs), bool)
+                t_from = np.zeros(len(dirs))
+            else:
+                pu, pv, psu, psv = previous
+                cell_u = np.minimum(np.floor(u / psu).astype(int), len(pu) - 1)  # the last cell holds the image's edge
+                cell_v = np.minimum(np.floor(v / psv).astype(int), len(pv) - 1)
+                iu = np.clip(cell_u[:, None, None, None] + np.arange(-1, 2)[:, None], 0, len(pu) - 1)
+                iv = np.clip(cell_v[None, :, None, None] + np.arange(-1, 2), 0, len(pv) - 1)
+                around = reached[(iu * len(pv) + iv).reshape(len(dirs), 9)]
+                walk = around.any(axis=1)
+                t_from = np.where(around.all(axis=1), far / 2 / far, 0.0)
+            seen, reached_now = first_hit_entries(starts[walk], starts[walk] + dirs[walk] * far, occupied, near / far,
+                                                  t_from[walk])
+            expected[seen] = True
+            reached = np.zeros(len(dirs), bool)
+            reached[walk] = reached_now
+            previous = (u, v, *pixel_cells(cam, step)[2:])
+    got = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near, range_bands=3)
+    assert np.array_equal(got.ravel(), expected)
+    whole = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near, range_bands=1)
+    assert (got ^ whole).sum() < 0.05 * whole.sum()
 
 
 def reference_triangle_voxels(tri):
