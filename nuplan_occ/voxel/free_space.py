@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec, true_indices
 from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
 from nuplan_occ.voxel.traversal import grid_args
 from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN
@@ -62,7 +62,7 @@ def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_poin
         raise ValueError(f"crossed_objects: grids have shapes {semantics.shape} / {object_points.shape}, expected {grid.shape}")
     wanted = np.zeros(256, dtype=bool)
     wanted[list(classes)] = True
-    candidates = np.argwhere(wanted[semantics] & ~object_points)
+    candidates = true_indices(wanted[semantics] & ~object_points)
     crossed = free_in_other_frames(grid.index_to_center(candidates), np.eye(4)[None],
                                    np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
     out = np.zeros(grid.shape, dtype=bool)
