@@ -34,9 +34,11 @@ class LabelParams:
     line_width_m: painted width of lane/road boundaries and stop lines.
     align_to_paint: correct the scene's poses against the map before rasterizing it (see
     nuplan_occ.voxel.map_align): ground returns at least paint_intensity_ratio times brighter than the ground
-    at the same range, from every align_sweep_stride-th sweep, are aligned to the painted lines; a
+    at the same range, from every align_sweep_stride-th sweep (at most align_max_sweeps of them, spread evenly over
+    the scene: `SceneData.spread_positions`; 0 = all), are aligned to the painted lines; a
     correction moving the scene more than align_max_offset_m or turning it more than align_max_yaw_deg is
-    refused (recorded, map used as is).
+    refused (recorded, map used as is). align_max_sweeps: a longer scene sees the same paint again from a little
+    further along, so a bounded number of sweeps spread over it aligns as well (bench/report-scale.md's notes).
     confirm_stop_lines (with align_to_paint): a stop polygon's edge is painted as road_line only where the
     flat-ground returns in its strip are mostly bright (nuplan_occ.voxel.map_align.paint_confirmed). The
     map gives stop polygons, not which edge carries the paint (nuPlan's format leaves that open); painting
@@ -47,16 +49,17 @@ class LabelParams:
     align_to_paint: bool = True
     paint_intensity_ratio: float = 3.0
     align_sweep_stride: int = 2
+    align_max_sweeps: int = 50
     align_max_offset_m: float = 0.5
     align_max_yaw_deg: float = 1.0
     confirm_stop_lines: bool = True
 
 
 def align_map(scene, poses: np.ndarray, layers: dict, params: LabelParams) -> tuple[MapAlignment, np.ndarray | None]:
-    """The scene's map correction (bright flat-ground returns of every align_sweep_stride-th loaded sweep,
+    """The scene's map correction (bright flat-ground returns of the `spread_positions` of the loaded sweeps,
     refined poses, against the map's painted lines) and the stop lines to paint: the stop polygon edges
     whose strip the corrected returns show painted (None: paint whole outlines, without confirmation)."""
-    used = scene.ok_indices()[::max(1, params.align_sweep_stride)]
+    used = scene.spread_positions(params.align_sweep_stride, params.align_max_sweeps)
     returns = ground_returns(scene.clouds_of(used), poses[used], scene.sensor_origin_ego,
                              ratio=params.paint_intensity_ratio)
     alignment = align_points_to_lines(returns.xy[returns.bright], painted_lines(layers),

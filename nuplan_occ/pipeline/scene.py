@@ -155,6 +155,15 @@ class SceneData:
         ends = {ok[0], ok[-1]} if ok else set()
         return [i for i in ok if self.sweeps[i].is_output or i % stride == phase or i in ends]
 
+    def spread_positions(self, stride: int, limit: int = 0) -> list[int]:
+        """Every `stride`-th loaded sweep's position, thinned to at most `limit` (> 0; 0 = no limit) spread
+        evenly over them, the first and last kept: evidence gathered along the whole scene at a cost that does
+        not grow with its length."""
+        used = self.ok_indices()[::max(1, stride)]
+        if 0 < limit < len(used):
+            used = [used[i] for i in np.linspace(0, len(used) - 1, limit).round().astype(int)]
+        return used
+
     def points_of(self, positions: list[int]) -> MappedSequence:
         """The xyz (N_i, 3) of the sweeps at `positions`, each read when asked for (they must have loaded)."""
         return MappedSequence(list(positions), lambda position: self.sweeps[position].xyz)

@@ -1,5 +1,6 @@
 """Which sweeps are registered and build the background (SceneData.background_positions): every output sweep,
-the sweeps in phase with them at the stride, the first and last loaded sweeps, never a sweep that failed to load."""
+the sweeps in phase with them at the stride, the first and last loaded sweeps, never a sweep that failed to load;
+and which sweeps align the map (SceneData.spread_positions): a stride, thinned evenly to a limit."""
 
 from __future__ import annotations
 
@@ -38,3 +39,11 @@ def test_a_scene_shorter_than_min_sweeps_keeps_every_sweep():
     every = list(range(len(outputs)))
     assert scene.background_positions(2, min_sweeps=9) == every
     assert scene.background_positions(2, min_sweeps=8) == [0, 1, 3, 5, 7]
+
+
+def test_spread_positions_thin_evenly_and_keep_both_ends():
+    scene = _scene([True] * 11, [True] * 10 + [False])
+    assert scene.spread_positions(2) == [0, 2, 4, 6, 8]
+    assert scene.spread_positions(1, limit=4) == [0, 3, 6, 9]
+    assert scene.spread_positions(2, limit=3) == [0, 4, 8]
+    assert scene.spread_positions(2, limit=5) == scene.spread_positions(2, limit=0) == [0, 2, 4, 6, 8]
