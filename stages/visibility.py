@@ -35,8 +35,8 @@ from nuplan_occ.voxel.visibility import UNKNOWN, camera_segments, lidar_observat
 @dataclass(frozen=True)
 class VisibilityParams:
     """camera_max_range_m: farthest distance a camera is taken to observe; camera_range_bands: the camera rays'
-    range bands (`nuplan_occ.voxel.visibility`; 1 = one lattice fine enough for max range, 3 takes half the
-    time at 0.9 % of the mask's voxels changed: bench/report-scale.md's notes). clear_free_space: clear
+    range bands (`nuplan_occ.voxel.visibility`; 1 = one lattice fine enough for max range everywhere; the cost
+    and the voxels changed by 3 are in bench/report-scale.md's notes). clear_free_space: clear
     background voxels that rays show empty (needs `lidar`): the frame's own rays, and with
     free_space_other_frames those of the scene's other output frames too (the background is static; their
     FREE grids are kept as packed bits, 640 KB a frame); free_space_ground_margin_m: only voxels whose
