@@ -23,11 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.geometry import invert_transform
-from nuplan_occ.grid import DEFAULT_GRID, true_indices
+from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.free_space import (
-    clearable_background, crossed_objects, free_in_other_frames, packed_free, point_support,
+    clearable_background, crossed_objects, free_voxels_in_frames, packed_free, point_support,
 )
 from nuplan_occ.voxel.visibility import UNKNOWN, camera_segments, lidar_observation, visible_along
 
@@ -152,11 +152,7 @@ def free_space_clear(position: int, token: str, scene, observations: RayObservat
                                for row, other in enumerate(observations.tokens)])
     else:
         bits, transforms = observations.free[own:own + 1], np.eye(4)[None]
-    rest = true_indices(candidates)
-    free = free_in_other_frames(DEFAULT_GRID.index_to_center(rest), transforms, bits)
-    clear = np.zeros(DEFAULT_GRID.shape, dtype=bool)
-    clear[tuple(rest[free].T)] = True
-    return clear
+    return free_voxels_in_frames(candidates, transforms, bits, DEFAULT_GRID)
 
 
 RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations", "observed_bits"),

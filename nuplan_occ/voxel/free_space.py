@@ -62,12 +62,8 @@ def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_poin
         raise ValueError(f"crossed_objects: grids have shapes {semantics.shape} / {object_points.shape}, expected {grid.shape}")
     wanted = np.zeros(256, dtype=bool)
     wanted[list(classes)] = True
-    candidates = true_indices(wanted[semantics] & ~object_points)
-    crossed = free_in_other_frames(grid.index_to_center(candidates), np.eye(4)[None],
-                                   np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
-    out = np.zeros(grid.shape, dtype=bool)
-    out[tuple(candidates[crossed].T)] = True
-    return out
+    return free_voxels_in_frames(wanted[semantics] & ~object_points, np.eye(4)[None],
+                                 np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
 
 
 def packed_free(observation: np.ndarray) -> np.ndarray:
@@ -103,3 +99,14 @@ def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: np.ndarray, 
     free = np.zeros(len(centres_ego), dtype=bool)
     any_bit_set(np.ascontiguousarray(centres_ego, dtype=np.float64), transforms, bits, *grid_args(grid), free)
     return free
+
+
+def free_voxels_in_frames(candidates: np.ndarray, T_other_from_ego: np.ndarray, free_bits: np.ndarray,
+                          grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """bool (X, Y, Z): the voxels of `candidates` (bool (X, Y, Z), this frame's grid) whose centre
+    `free_in_other_frames` finds in some frame's crossed space (T_other_from_ego, free_bits as there)."""
+    indices = true_indices(candidates)
+    free = free_in_other_frames(grid.index_to_center(indices), T_other_from_ego, free_bits, grid)
+    out = np.zeros(grid.shape, dtype=bool)
+    out[tuple(indices[free].T)] = True
+    return out

@@ -136,7 +136,8 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
     """visible[v] = True for the entries v of each segment starts -> ends ((N, 3) m) with t <= t_hit, its
     first blocking entry's t (the least t >= t_block of an entry whose voxel is occupied; all entries when
     none blocks). resume[r] says which part of segment r is walked: 0 none, 1 from t = resume_t on (the part
-    before stands for one that other rays walked), 2 all of it. reached[r] = True when segment r ends (t = 1) inside the grid with no blocking entry.
+    before stands for one that other rays walked), 2 all of it. reached[r] = True when segment r ends (t = 1)
+    inside the grid with no blocking entry.
     occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
 
     Per segment, each axis' crossings are recorded WALK_PAD at a time and scanned in order of t until the

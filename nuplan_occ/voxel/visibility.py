@@ -141,15 +141,17 @@ def camera_segments(cameras: list[CameraCalibration], grid: GridSpec = DEFAULT_G
     for k in reversed(range(range_bands)):
         far, near = max_range_m / 2**k, (max_range_m / 2 ** (k + 1) if k < range_bands - 1 else 0.0)
         starts, ends, parents, placed = [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros((0, 9), np.int64)], []
+        first = 0  # this camera's first ray in the band
         for c, camera in enumerate(cameras):
             origin, dirs = camera_rays(camera, far_step * 2**k)
-            lattice, first = _pixel_lattice(camera, far_step * 2**k), sum(len(s) for s in starts)
+            lattice = _pixel_lattice(camera, far_step * 2**k)
             starts.append(np.broadcast_to(origin, dirs.shape))
             ends.append(origin + dirs * far)
             if previous is not None:
                 parent_lattice, parent_first = previous[c]
                 parents.append(_parent_cells(lattice, parent_lattice) + parent_first)
             placed.append((lattice, first))
+            first += len(dirs)
         bands.append(RayBand(np.concatenate(starts), np.concatenate(ends), near / far, near_m / far,
                              np.concatenate(parents) if previous is not None else None))
         previous = placed
