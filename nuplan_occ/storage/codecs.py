@@ -90,11 +90,13 @@ MEMBERS: dict[str, MemberSpec] = {
         MemberSpec("semantics", "sem.zst", "uint8", (), False, "zstd", 9),
         MemberSpec("mask_lidar", "mask_lidar.bits.xz", "bool", (), True, "xz", 0),
         MemberSpec("mask_camera", "mask_camera.bits.xz", "bool", (), True, "xz", 0),
-        MemberSpec("instance", "inst.zst", "uint16", (), False, "zstd", 9),
-        MemberSpec("flow", "flow.zst", "float16", (3,), False, "zstd", 9),
+        MemberSpec("instance", "inst.zst", "uint16", (), False, "zstd", 3),
+        MemberSpec("flow", "flow.zst", "float16", (3,), False, "zstd", 3),
     )
 }
-"""Array members in their fixed manifest-column order; levels are zstd levels or xz presets."""
+"""Array members in their fixed manifest-column order; levels are zstd levels or xz presets. instance and
+flow are almost all zeros, so level 3 rather than 9 costs them little size and saves most of their encode
+time (measured in the notes of bench/report-scale.md)."""
 
 
 def check_array(spec: MemberSpec, array: np.ndarray, grid: GridSpec, where: str) -> None:
@@ -119,15 +121,16 @@ def encode(spec: MemberSpec, array: np.ndarray, level: int) -> bytes:
     if not low <= level <= high:
         raise InvalidFrameError(f"member {spec.name!r}: level {level} outside {spec.container} range [{low}, {high}]")
     if spec.packbits:
-        raw = np.packbits(np.ascontiguousarray(array).reshape(-1)).tobytes()
+        payload = np.packbits(np.ascontiguousarray(array).reshape(-1))
     else:
-        raw = np.ascontiguousarray(array, dtype=np.dtype(spec.dtype).newbyteorder("<")).tobytes()
+        payload = np.ascontiguousarray(array, dtype=np.dtype(spec.dtype).newbyteorder("<"))
+    raw = memoryview(payload.reshape(-1).view(np.uint8))  # the array's own bytes: no copy of the payload
     if spec.container == "xz":
         return lzma.compress(raw, format=lzma.FORMAT_XZ, check=lzma.CHECK_CRC32, filters=_xz_filters(level, len(raw)))
     return _zstd_frame(raw, level)
 
 
-def _zstd_frame(raw: bytes, level: int) -> bytes:
+def _zstd_frame(raw: memoryview, level: int) -> bytes:
     """One zstd frame of `raw` with its content size, produced through the streaming API in small output
     chunks: the one-shot API allocates a compress-bound output (the payload's size) per member and shrinks
     it in place, which left the heap fragmented by ~5 MB per member and frame (scale-report notes)."""
