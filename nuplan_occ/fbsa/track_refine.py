@@ -20,10 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.aggregate import voxel_first_indices
+from nuplan_occ.fbsa.knn import KdTree
+from nuplan_occ.fbsa.plane_normals import pca_normals
 from nuplan_occ.geometry import wrap_angle, yaw_matrix
 
 
@@ -85,15 +86,12 @@ def corrected_box(center: np.ndarray, yaw: float, correction: np.ndarray) -> tup
     return new_center, float(wrap_angle(yaw - c[3]))
 
 
-def estimate_normals(points: np.ndarray, tree: cKDTree, neighbors: int) -> np.ndarray:
-    """(n, 3) unit normals (smallest principal axis of each point's `neighbors` nearest points)."""
+def estimate_normals(points: np.ndarray, tree: KdTree, neighbors: int) -> np.ndarray:
+    """(n, 3) unit normals (smallest principal axis of each point's `neighbors` nearest points; the sign is
+    arbitrary, which point-to-plane ICP does not see)."""
     k = min(neighbors, len(points))
     _, idx = tree.query(points, k=k)
-    idx = np.asarray(idx).reshape(len(points), k)
-    local = points[idx] - points[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", local, local)
-    _, vectors = np.linalg.eigh(cov)
-    return vectors[:, :, 0]
+    return pca_normals(tree.data, idx.reshape(len(points), k).astype(np.int64))
 
 
 @dataclass
@@ -103,7 +101,7 @@ class TrackModel:
     points: np.ndarray
     normals: np.ndarray
     frame_ids: np.ndarray
-    tree: cKDTree
+    tree: KdTree
 
 
 def build_model(frames: list[np.ndarray], corrections: np.ndarray, params: TrackRefineParams) -> TrackModel:
@@ -113,7 +111,7 @@ def build_model(frames: list[np.ndarray], corrections: np.ndarray, params: Track
     all_points = np.vstack(pts)
     keep = voxel_first_indices(all_points, params.model_voxel_m)
     points, frame_ids = all_points[keep], np.concatenate(ids)[keep]
-    tree = cKDTree(points)
+    tree = KdTree(points)
     return TrackModel(points, estimate_normals(points, tree, params.normal_neighbors), frame_ids, tree)
 
 
