@@ -83,7 +83,7 @@ def reconstruct(
     info: dict = {"method": method, "points": len(pts)}
     if method == "poisson":
         vertices, faces = poisson_mesh(
-            pts, estimate_normals(pts, origins_at(np.arange(len(pts))), params.normal_knn), params.poisson_depth,
+            pts, estimate_normals(pts, origins_at(np.arange(len(pts))), params.normal_knn, params.normal_cell_m), params.poisson_depth,
             params.poisson_density_quantile, params.mask_distance, cKDTree(pts),
             threads=params.threads or -1,
         )

@@ -121,13 +121,13 @@ class ChunkTiles:
 
 
 def chunk_normals(tiles: ChunkTiles, near: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: float,
-                  origins_at: Callable[[np.ndarray], np.ndarray], knn: int) -> np.ndarray:
+                  origins_at: Callable[[np.ndarray], np.ndarray], knn: int, cell_m: float = 0.0) -> np.ndarray:
     """(len(near), 3) float32 unit normals, facing their sensor origins, of the points `near` (tiles.near(lo,
     hi, reach): the points within `reach` level-0 voxels of the core [lo, hi)), estimated from those points and
     the ones within NORMAL_HALO_M beyond them (origins_at(indices): (k, 3) origins of the points at those
-    indices). float32: the solver averages them per voxel."""
+    indices; knn, cell_m: see `estimate_normals`). float32: the solver averages them per voxel."""
     context = tiles.near(lo, hi, reach + NORMAL_HALO_M / tiles.voxel_size)
-    normals = estimate_normals(tiles.points[context], origins_at(context), knn)
+    normals = estimate_normals(tiles.points[context], origins_at(context), knn, cell_m)
     return normals[np.searchsorted(context, near)].astype(np.float32)
 
 
@@ -164,7 +164,7 @@ def nksr_mesh(points: np.ndarray, origins_at: Callable[[np.ndarray], np.ndarray]
         if not tiles.within(near, lo, hi, min(mask, margin)).any():
             continue
         chunk = points[near]
-        normals = chunk_normals(tiles, near, lo, hi, margin, origins_at, params.normal_knn)
+        normals = chunk_normals(tiles, near, lo, hi, margin, origins_at, params.normal_knn, params.normal_cell_m)
         field, chunk_stats = fit_field(chunk, normals, tiles.anchor, params)
         verts, tris = extract_mesh(field, cKDTree((chunk - tiles.anchor) / h), mask, (lo, hi))
         stats.append(chunk_stats)

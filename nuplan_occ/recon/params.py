@@ -20,8 +20,10 @@ class ReconParams:
     Shared by every method:
     - mask_distance: surface farther than this from every input point is removed (m). NKSR trims
       at 2 voxels; this is the analytic distance-to-points version (reference A.8 / A.11.5).
-    - normal_knn: neighbours of the PCA normal estimate (Open3D kNN); normals are flipped to face
-      each point's sensor origin.
+    - normal_knn: neighbours of the PCA normal estimate (`normals.estimate_normals`); normals are flipped
+      to face each point's sensor origin.
+    - normal_cell_m: one normal is estimated per cube of this edge, at its points' centroid, and shared by
+      them (0 = one per point); the cell sizes measured are in bench/report-scale.md's notes.
     - min_component_faces: connected mesh components with fewer faces are removed (pymeshlab).
     - max_hole_edges: holes bounded by at most this many edges are closed (pymeshlab); 0 = off.
     - threads: torch intra-op threads during the solve (restored afterwards) and Open3D Poisson
@@ -55,6 +57,7 @@ class ReconParams:
 
     mask_distance: float = 0.5
     normal_knn: int = 30
+    normal_cell_m: float = 0.1
     min_component_faces: int = 50
     max_hole_edges: int = 0
     threads: int = 1
@@ -90,5 +93,7 @@ class ReconParams:
             raise ReconError("ReconParams: ridge, value, gradient and offset weights must be >= 0")
         if not 0 <= self.poisson_density_quantile < 1:
             raise ReconError(f"ReconParams.poisson_density_quantile must be in [0, 1), got {self.poisson_density_quantile}")
+        if self.normal_cell_m < 0:
+            raise ReconError(f"ReconParams.normal_cell_m must be >= 0, got {self.normal_cell_m}")
         if self.chunk_size > 0 and self.chunk_overlap < 0:
             raise ReconError(f"ReconParams.chunk_overlap must be >= 0, got {self.chunk_overlap}")
