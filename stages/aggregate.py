@@ -48,7 +48,9 @@ class AggregateParams:
     boxes, unboxed movers); dynamic_min_votes, dynamic_ground_clearance_m, dynamic_protect_dilation,
     dynamic_occupied_ratio: see nuplan_occ.fbsa.dynamic.seen_through (ratio 0.5 chosen by measurement on the
     bench: 0 removes more trail but also 1-3 % of static points on faces seen at grazing angles);
-    dynamic_sweep_stride: use every n-th loaded sweep's rays as evidence (one ray traversal per used sweep).
+    dynamic_sweep_stride: use every n-th loaded sweep's rays as evidence (one ray traversal per used sweep);
+    dynamic_max_sweeps: at most this many of them, spread evenly over the scene (`SceneData.spread_positions`;
+    0 = all): a longer scene's points are seen by more sweeps than the vote needs (bench/report-scale.md notes).
     object_clearance_m: background points inside a corrected box grown by this much (sideways and up) are
     dropped (negative: keep them): an object's points that its logged box missed would otherwise become
     background, and a ghost trail where the object moves; ground_keep_m: the grown box starts this high
@@ -70,6 +72,7 @@ class AggregateParams:
     dynamic_protect_dilation: int = 1
     dynamic_occupied_ratio: float = 0.5
     dynamic_sweep_stride: int = 2
+    dynamic_max_sweeps: int = 100
     object_clearance_m: float = 0.2
     ground_keep_m: float = 0.03
     max_range_m: float = 75.0
@@ -146,7 +149,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     )
     frame_movers = {position: np.zeros((0, 3), np.float32) for position in outputs}
     if params.remove_dynamic and ok:
-        used = ok[::max(1, params.dynamic_sweep_stride)]
+        used = scene.spread_positions(params.dynamic_sweep_stride, params.dynamic_max_sweeps)
         T_scene_from_ego = invert_transform(background.T_global_from_scene) @ poses[used]
         dynamic = seen_through(background.points, MappedSequence(used, observation_at), T_scene_from_ego,
                                min_votes=params.dynamic_min_votes,
