@@ -28,6 +28,7 @@ from typing import Any
 
 from nuplan_occ import __version__
 from nuplan_occ.bench import BENCH_SEED, _table, bench_quality
+from nuplan_occ.bench_scale_plot import plot_stage_history, stage_history
 
 SCALE_PRESET = "city"
 RSS_SAMPLE_S = 0.1
@@ -243,14 +244,22 @@ def bench_kiss_icp(data_root: Path, sweeps: int, threads: tuple[int, ...] = (1, 
     return out
 
 
+PICTURE_SCENE_SECONDS = 20.0
+"""The scene length whose builds the report's picture shows (the issue's yardstick)."""
+PICTURE_NAME = "report-scale.png"
+
+
 def write_scale_report(report: dict, out_dir: Path) -> None:
-    """bench/report-scale.json and bench/report-scale.md."""
+    """bench/report-scale.json, bench/report-scale.md and its picture bench/report-scale.png."""
     (out_dir / "report-scale.json").write_text(json.dumps(report, indent=2, default=float))
-    (out_dir / "report-scale.md").write_text(render_scale_markdown(report))
+    history = stage_history(report, PICTURE_SCENE_SECONDS, STAGE_ORDER)
+    if history.labels:
+        plot_stage_history(history, PICTURE_SCENE_SECONDS, out_dir / PICTURE_NAME)
+    (out_dir / "report-scale.md").write_text(render_scale_markdown(report, picture=bool(history.labels)))
 
 
-def render_scale_markdown(report: dict) -> str:
-    """The scale report as Markdown tables."""
+def render_scale_markdown(report: dict, picture: bool = False) -> str:
+    """The scale report as Markdown tables; with `picture`, led by bench/report-scale.png."""
     runs = report["runs"]
     stages = sorted({s for r in runs for s in r["stage_seconds_per_frame"]} | {s for r in runs for s in r["stage_peak_rss_mb"]},
                     key=lambda s: [*STAGE_ORDER, s].index(s))
@@ -258,6 +267,8 @@ def render_scale_markdown(report: dict) -> str:
              f"Synthetic `{report['preset']}` logs (seed {report['seed']}), one scene spanning the log, one worker on one "
              "thread, built from scratch. Targets (issue #16): <= 1.0 s per frame per core and peak RSS <= 6 GB "
              "for the 20 s scene (<= 1.3x the 5 s scene's).", "",
+             *([f"![CPU seconds per frame by stage and peak RSS of every {PICTURE_SCENE_SECONDS:g} s build]"
+                f"({PICTURE_NAME})", ""] if picture else []),
              "## Cost", "",
              _table(["scene s", "code", "date", "frames", "failed", "CPU s/frame", "stage wall s/frame", "wall s/frame", "peak RSS MB",
                      "work bytes/frame", "dataset bytes/frame", "note"],
