@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.fbsa.aggregate import BackgroundAggregate, aggregate_background, aggregate_objects
+from nuplan_occ.fbsa.aggregate import BackgroundAggregate, aggregate_background, aggregate_objects, without_outliers
 from nuplan_occ.fbsa.carve import segments_through_box
 from nuplan_occ.fbsa.dynamic import seen_through
 from nuplan_occ.fbsa.split import outside_boxes
@@ -61,7 +61,10 @@ class AggregateParams:
     range is not documented), so beyond it moving vehicles have no box and their points would enter the
     background as a static ghost; the sweeps' rays cannot vote them out there either, as each sweep votes only
     inside its own grid. A point inside an output frame's grid is within 70.7 m of that frame's ego, so the
-    scenery of every grid is still seen from the nearer sweeps (bench/report-scale.md notes: trails at 20 s)."""
+    scenery of every grid is still seen from the nearer sweeps (bench/report-scale.md notes: trails at 20 s).
+    outlier_method: "none", or a method of nuplan_occ.fbsa.outliers run once on the (downsampled) aggregate,
+    each point scored against its own sweep's sensor, with outlier_neighbors and outlier_std_ratio: one kNN
+    pass over the scene's background in place of one per sweep (FilterParams.method "none")."""
 
     voxel_downsample_m: float = 0.05
     crop_margin_m: float = 5.0
@@ -76,6 +79,9 @@ class AggregateParams:
     object_clearance_m: float = 0.2
     ground_keep_m: float = 0.03
     max_range_m: float = 75.0
+    outlier_method: str = "none"
+    outlier_neighbors: int = 8
+    outlier_std_ratio: float = 2.0
 
 
 MOVER_CELL_M = 0.05
@@ -147,6 +153,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
         voxel_downsample_m=params.voxel_downsample_m or None,
         crop=crop,
     )
+    background = without_outliers(background, params.outlier_method, params.outlier_neighbors, params.outlier_std_ratio)
     frame_movers = {position: np.zeros((0, 3), np.float32) for position in outputs}
     if params.remove_dynamic and ok:
         used = scene.spread_positions(params.dynamic_sweep_stride, params.dynamic_max_sweeps)
@@ -183,7 +190,8 @@ STAGE = Stage("aggregate", inputs=("scene", "background", "background_positions"
               outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers"),
               params_type=AggregateParams,
               run=run,
-              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.box_kernels", "nuplan_occ.fbsa.carve",
+              code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.box_kernels", "nuplan_occ.fbsa.outliers",
+                    "nuplan_occ.fbsa.knn", "nuplan_occ.fbsa.carve",
                     "nuplan_occ.fbsa.box_cull", "nuplan_occ.fbsa.dynamic", "nuplan_occ.fbsa.split",
                     "nuplan_occ.fbsa.voxel_reduce",
                     "nuplan_occ.voxel.visibility", "nuplan_occ.voxel.traversal", "nuplan_occ.voxel.frame_lookup"),

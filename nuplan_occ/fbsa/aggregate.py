@@ -15,6 +15,7 @@ import numpy as np
 
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.box_kernels import inside_any_frame_box
+from nuplan_occ.fbsa.outliers import remove_statistical_outliers
 from nuplan_occ.fbsa.voxel_reduce import KeySet, first_of_each_key, voxel_keys
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.io.types import Boxes
@@ -43,6 +44,16 @@ class BackgroundAggregate:
         """The aggregate of the points selected by `keep` (a bool mask or indices over the points)."""
         return BackgroundAggregate(self.points[keep], self.frame_ids[keep], self.frame_origins,
                                    self.T_global_from_scene)
+
+
+def without_outliers(aggregate: BackgroundAggregate, method: str, nb_neighbors: int = 8,
+                     std_ratio: float = 2.0) -> BackgroundAggregate:
+    """The aggregate without the points that nuplan_occ.fbsa.outliers' `method` finds to be outliers, each
+    point scored against its own sweep's sensor origin ("range"); "none" returns it unchanged."""
+    if method == "none":
+        return aggregate
+    return aggregate.subset(remove_statistical_outliers(aggregate.points, method=method, nb_neighbors=nb_neighbors,
+                                                        std_ratio=std_ratio, origin=aggregate.sensor_origins))
 
 
 def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:

@@ -71,6 +71,9 @@ class RegistrationParams:
     `SceneData.background_positions(sweep_stride)` (every output sweep and every n-th sweep in phase with them;
     1: every sweep) and passes the others as None, so their poses are interpolated (`refine_poses`).
     stride_min_sweeps: scenes with fewer loaded sweeps than this register every sweep whatever the stride.
+    min_voxel_points: the downsampled sweep and its contribution to the map keep only the voxels holding at
+    least this many of its points (1: all), so isolated returns do not enter ICP even when no outlier filter
+    ran on the sweep (FilterParams.method "none"; the measured trade is in bench/report-scale.md's notes).
     """
 
     voxel_size_m: float = 0.3
@@ -93,6 +96,7 @@ class RegistrationParams:
     log_sigma_deg: float = 1.0
     sweep_stride: int = 2
     stride_min_sweeps: int = 40
+    min_voxel_points: int = 1
 
 
 @dataclass
@@ -367,7 +371,7 @@ def refine_poses(clouds_ego: Sequence[np.ndarray | None], logged_poses: np.ndarr
             accepted[k] = k == 0
             reasons[k] = "" if k == 0 else "no cloud"
             continue
-        source = voxel_centroids(cloud, params.voxel_size_m)
+        source = voxel_centroids(cloud, params.voxel_size_m, params.min_voxel_points)
         n_src = len(source)
         if k == 0:
             accepted[k] = True
@@ -384,7 +388,7 @@ def refine_poses(clouds_ego: Sequence[np.ndarray | None], logged_poses: np.ndarr
             if accepted[k]:
                 chain[k] = T
         if n_src >= params.min_points and (accepted[k] or not local_map.sweeps):
-            local_map.add(transform_points(chain[k], voxel_centroids(cloud, params.map_voxel_m)))
+            local_map.add(transform_points(chain[k], voxel_centroids(cloud, params.map_voxel_m, params.min_voxel_points)))
     chain = interpolate_gaps(chain, has_cloud, np.arange(F, dtype=np.float64) if times is None
                              else np.asarray(times, dtype=np.float64))
     anchor = fit_anchor(chain, local_log, params.log_sigma_xy_m, params.log_sigma_deg) \

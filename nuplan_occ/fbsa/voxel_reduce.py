@@ -28,11 +28,16 @@ def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return (shifted[:, 0] << (2 * KEY_BITS)) | (shifted[:, 1] << KEY_BITS) | shifted[:, 2]
 
 
-def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """(K, 3) mean of the points (N, 3) of each occupied voxel, one row per voxel in key order."""
+def voxel_centroids(points: np.ndarray, voxel_m: float, min_count: int = 1) -> np.ndarray:
+    """(K, 3) mean of the points (N, 3) of each voxel holding at least min_count of them, one row per voxel in
+    key order."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     index = KeyIndex(voxel_keys(pts, voxel_m))
-    return group_means(index.ids, pts, len(index.keys))[np.argsort(index.keys)]
+    order = np.argsort(index.keys)
+    means = group_means(index.ids, pts, len(index.keys))[order]
+    if min_count <= 1:
+        return means
+    return means[np.bincount(index.ids, minlength=len(index.keys))[order] >= min_count]
 
 
 @numba.njit(cache=True)

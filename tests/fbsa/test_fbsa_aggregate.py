@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nuplan_occ.fbsa import FbsaInputError
-from nuplan_occ.fbsa.aggregate import aggregate_background, aggregate_objects, within_boxes
+from nuplan_occ.fbsa.aggregate import BackgroundAggregate, aggregate_background, aggregate_objects, within_boxes, without_outliers
 from nuplan_occ.fbsa.split import FrameSplit
 from nuplan_occ.geometry import invert_transform, make_transform, rotation_from_euler, transform_points
 from nuplan_occ.io.types import Boxes, PointCloud
@@ -88,3 +88,25 @@ def test_objects_keep_their_frames_and_rigidity():
         aggregate_objects([s.track_points() for s in splits], boxes[:4])
     with pytest.raises(FbsaInputError):
         aggregate_objects([_split({"ghost": np.ones((1, 3))}).track_points()], [_boxes([], [], [])])
+
+
+def test_outliers_of_the_aggregate_are_removed_against_each_points_own_sensor():
+    """Two sweeps' ground returns, spaced in proportion to their range as a LiDAR's are, 20 m apart, plus 40
+    floaters 1-3 m above the ground: "range" removes every floater and almost no ground; "none" keeps all."""
+    rng = np.random.default_rng(3)
+    sensors = np.array([[-10.0, 0.0, 1.8], [10.0, 0.0, 1.8]])
+    ranges = 2.0 * 1.01 ** np.arange(200)  # 2 m to 14.6 m, rings 1 % of their range apart
+    azimuths = np.radians(np.arange(0.0, 360.0, 0.6))
+    r, a = (g.ravel() for g in np.meshgrid(ranges, azimuths, indexing="ij"))
+    ring = np.c_[r * np.cos(a), r * np.sin(a), rng.normal(0.0, 0.003, len(r))]
+    ground = np.vstack([ring + [sensor[0], sensor[1], 0.0] for sensor in sensors])
+    floaters = np.c_[rng.uniform(-20, 20, 40), rng.uniform(-12, 12, 40), rng.uniform(1.0, 3.0, 40)]
+    points = np.vstack([ground, floaters])
+    frame_ids = np.r_[np.repeat(np.arange(2, dtype=np.int32), len(ring)), rng.integers(0, 2, 40).astype(np.int32)]
+    aggregate = BackgroundAggregate(points, frame_ids, sensors, np.eye(4))
+    kept = without_outliers(aggregate, "range")
+    assert (kept.points[:, 2] < 0.5).all()  # no floater left
+    assert len(kept.points) >= 0.995 * len(ground)
+    survivors = np.flatnonzero(np.isin(points[:, 0], kept.points[:, 0]) & (points[:, 2] < 0.5))
+    np.testing.assert_array_equal(kept.frame_ids, frame_ids[survivors])
+    assert without_outliers(aggregate, "none") is aggregate

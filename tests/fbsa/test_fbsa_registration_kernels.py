@@ -81,6 +81,9 @@ def test_voxel_reductions_against_brute_force():
     np.testing.assert_array_equal(voxel_first_indices(points, 0.5), np.sort(first))
     expected = np.stack([points[inverse.ravel() == c].mean(axis=0) for c in range(len(unique))])
     np.testing.assert_allclose(voxel_centroids(points, 0.5), expected, atol=1e-12)  # key order = index order
+    counts = np.bincount(inverse.ravel())
+    np.testing.assert_allclose(voxel_centroids(points, 0.5, min_count=5), expected[counts >= 5], atol=1e-12)
+    assert 0 < (counts >= 5).sum() < len(counts)  # the gate drops some voxels and keeps others
     assert len(voxel_centroids(np.zeros((0, 3)), 0.5)) == 0 and len(voxel_first_indices(np.zeros((0, 3)), 0.5)) == 0
     rng_keys = np.r_[rng.integers(-2**62, 2**62, 3000), rng.integers(-20, 20, 3000)]  # hash collisions, repeats
     np.testing.assert_array_equal(first_of_each_key(rng_keys), np.sort(np.unique(rng_keys, return_index=True)[1]))
