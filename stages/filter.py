@@ -33,10 +33,9 @@ class FilterParams:
     stride_min_sweeps: scenes with fewer loaded sweeps than this take every sweep whatever the stride (a
     short scene has little evidence to spare; bench/report-scale.md's notes).
     method "none" keeps every point: the filter can then run once on the scene's aggregate instead
-    (AggregateParams.outlier_method), with registration gated by RegistrationParams.min_voxel_points. Measured
-    on the 20 s scale scene (bench/report-scale.md's notes): about 0.18 CPU s per frame less, IoU and mIoU
-    higher, vehicle IoU 0.005 lower (0.009 on the small bench), hence not the default. At scale:
-    `--set filter.method=none --set aggregate.outlier_method=range --set register.min_voxel_points=2`."""
+    (AggregateParams.outlier_method), with registration gated by RegistrationParams.min_voxel_points: the
+    README's scale profile. It is faster with higher IoU and mIoU but lower vehicle IoU (bench/report-scale.md's
+    notes), hence not the default."""
 
     method: str = "range"
     nb_neighbors: int = 8
