@@ -59,10 +59,6 @@ def run(inputs: dict, params: FilterParams) -> dict:
                 yield None
                 continue
             points = split.background.xyz
-            if params.method == "none":
-                removed.append(0)
-                yield points
-                continue
             keep = remove_statistical_outliers(points, method=params.method, nb_neighbors=params.nb_neighbors,
                                                std_ratio=params.std_ratio, k_sigma=params.k_sigma,
                                                origin=inputs["scene"].sensor_origin_ego)

@@ -49,11 +49,10 @@ class BackgroundAggregate:
 def without_outliers(aggregate: BackgroundAggregate, method: str, nb_neighbors: int = 8,
                      std_ratio: float = 2.0) -> BackgroundAggregate:
     """The aggregate without the points that nuplan_occ.fbsa.outliers' `method` finds to be outliers, each
-    point scored against its own sweep's sensor origin ("range"); "none" returns it unchanged."""
-    if method == "none":
-        return aggregate
-    return aggregate.subset(remove_statistical_outliers(aggregate.points, method=method, nb_neighbors=nb_neighbors,
-                                                        std_ratio=std_ratio, origin=aggregate.sensor_origins))
+    point scored against its own sweep's sensor origin ("range"); the aggregate itself when none is."""
+    keep = remove_statistical_outliers(aggregate.points, method=method, nb_neighbors=nb_neighbors,
+                                       std_ratio=std_ratio, origin=aggregate.sensor_origins)
+    return aggregate if keep.all() else aggregate.subset(keep)
 
 
 def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:

@@ -8,6 +8,7 @@ Methods:
 - "range": the same test on d(p) / ||p - origin||, so that the spacing growing with range is not mistaken
   for isolation (origin: the sensor in the points' frame, one for all points or one per point, e.g. the
   per-point sensor origins of an aggregate).
+- "none": keeps every point.
 The default, "range", was chosen by measurement (tests/fbsa/test_fbsa_outliers.py: synthetic sweeps with 1 %
 uniform and 0.5 % near-sensor outliers; share of outliers caught / of real points lost, defaults k=8, 2.0, 3.0):
   single sweeps:      range 0.84 / 0.0 %   knn 0.67 / 1.1 %   global 0.30 / 1.1 %
@@ -25,7 +26,7 @@ import open3d as o3d
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.knn import knn_distances
 
-OUTLIER_METHODS = ("global", "knn", "range")
+OUTLIER_METHODS = ("global", "knn", "range", "none")
 MIN_RANGE_M = 1.0
 """Ranges below this are clamped in the "range" method (points on or next to the sensor)."""
 
@@ -73,7 +74,7 @@ def remove_statistical_outliers(
         raise FbsaInputError(f"remove_statistical_outliers: points must be (N, 3), got shape {pts.shape}")
     if method not in OUTLIER_METHODS:
         raise FbsaInputError(f"remove_statistical_outliers: unknown method {method!r}; use one of {OUTLIER_METHODS}")
-    if len(pts) <= nb_neighbors if method != "global" else len(pts) < 2:
+    if method == "none" or (len(pts) <= nb_neighbors if method != "global" else len(pts) < 2):
         return np.ones(len(pts), dtype=bool)
     if method == "global":
         return _global_mask(pts, k_sigma)
