@@ -6,14 +6,18 @@ frame) accumulated (rigid classes over the whole scene, pedestrians over a short
 For space carving, the background rays of each frame that cross a rigid track's box are kept in that
 box's frame (they show where the object is not).
 
-Inputs: `scene`, `background` (of the sweeps at `background_positions`), `registration`, `object_boxes`,
+The outlier test the filter stage left to the aggregate (`aggregate_outliers`, long scenes) runs on the
+downsampled aggregate, before the dynamic test.
+
+Inputs: `scene`, `background` (of the sweeps at `background_positions`), `aggregate_outliers`, `registration`, `object_boxes`,
 `object_points` (of every loaded sweep), `observations` and `observed_bits` (the lidar_rays stage's
 observation grids of the output frames, the dynamic test's evidence from those sweeps).
 Outputs: `background_aggregate` (BackgroundAggregate, scene frame, its points in ascending scene x, so a
 frame reads only the slice within its grid's reach), `objects` (track -> ObjectAggregate),
 `object_through_rays` (rigid track -> (starts (K, 3), ends (K, 3)), box frame, m), `frame_movers` (output
 sweep position -> (n, 3) float32, scene frame: the sweep's own background points where the aggregate
-removed points as dynamic).
+removed points as dynamic), `aggregate_outliers_removed` (sweep position -> the aggregate points of that
+sweep the outlier test removed; empty when the filter stage filtered the sweeps).
 """
 
 from __future__ import annotations
@@ -61,10 +65,7 @@ class AggregateParams:
     range is not documented), so beyond it moving vehicles have no box and their points would enter the
     background as a static ghost; the sweeps' rays cannot vote them out there either, as each sweep votes only
     inside its own grid. A point inside an output frame's grid is within 70.7 m of that frame's ego, so the
-    scenery of every grid is still seen from the nearer sweeps (bench/report-scale.md notes: trails at 20 s).
-    outlier_method: "none", or a method of nuplan_occ.fbsa.outliers run once on the (downsampled) aggregate,
-    each point scored against its own sweep's sensor, with outlier_neighbors and outlier_std_ratio: one kNN
-    pass over the scene's background in place of one per sweep (FilterParams.method "none")."""
+    scenery of every grid is still seen from the nearer sweeps (bench/report-scale.md notes: trails at 20 s)."""
 
     voxel_downsample_m: float = 0.05
     crop_margin_m: float = 5.0
@@ -79,9 +80,6 @@ class AggregateParams:
     object_clearance_m: float = 0.2
     ground_keep_m: float = 0.03
     max_range_m: float = 75.0
-    outlier_method: str = "none"
-    outlier_neighbors: int = 8
-    outlier_std_ratio: float = 2.0
 
 
 MOVER_CELL_M = 0.05
@@ -153,7 +151,10 @@ def run(inputs: dict, params: AggregateParams) -> dict:
         voxel_downsample_m=params.voxel_downsample_m or None,
         crop=crop,
     )
-    background = without_outliers(background, params.outlier_method, params.outlier_neighbors, params.outlier_std_ratio)
+    outliers_removed = {}
+    if inputs["aggregate_outliers"] is not None:
+        background, removed = without_outliers(background, inputs["aggregate_outliers"])
+        outliers_removed = {position: int(n) for position, n in zip(with_background, removed)}
     frame_movers = {position: np.zeros((0, 3), np.float32) for position in outputs}
     if params.remove_dynamic and ok:
         used = scene.spread_positions(params.dynamic_sweep_stride, params.dynamic_max_sweeps)
@@ -182,12 +183,13 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     object_through_rays = {track: (np.vstack([r[0] for r in rays]), np.vstack([r[1] for r in rays]))
                            for track, rays in through.items()}
     return {"background_aggregate": background, "objects": objects, "object_through_rays": object_through_rays,
-            "frame_movers": frame_movers}
+            "frame_movers": frame_movers, "aggregate_outliers_removed": outliers_removed}
 
 
-STAGE = Stage("aggregate", inputs=("scene", "background", "background_positions", "registration", "object_boxes",
-                            "object_points", "observations", "observed_bits"),
-              outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers"),
+STAGE = Stage("aggregate", inputs=("scene", "background", "background_positions", "aggregate_outliers", "registration",
+                            "object_boxes", "object_points", "observations", "observed_bits"),
+              outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers",
+                       "aggregate_outliers_removed"),
               params_type=AggregateParams,
               run=run,
               code=("nuplan_occ.fbsa.aggregate", "nuplan_occ.fbsa.box_kernels", "nuplan_occ.fbsa.outliers",

@@ -2,12 +2,16 @@
 the logged relative motion as the prior; every correction is gated (poor fit or implausible jump ->
 keep the logged pose, with the reason recorded). Only the sweeps of `SceneData.background_positions(sweep_stride)`
 are registered; the others (and failed sweeps, or sweeps the filter left without a background) get poses
-interpolated between their neighbours' refined poses at their timestamps.
+interpolated between their neighbours' refined poses at their timestamps. Sweeps that the filter stage passed
+through unfiltered (it left its test to the aggregate: `aggregate_outliers`) are registered on the voxels
+holding at least `unfiltered_min_voxel_points` of their returns.
 
-Inputs: `scene`, `background`. Outputs: `registration` (RegistrationResult; poses are T_global_from_ego).
+Inputs: `scene`, `background`, `aggregate_outliers`. Outputs: `registration` (RegistrationResult; poses are T_global_from_ego).
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -20,6 +24,8 @@ def run(inputs: dict, params: RegistrationParams) -> dict:
     scene = inputs["scene"]
     if params.sweep_stride < 1:
         raise ValueError(f"register: sweep_stride must be >= 1, got {params.sweep_stride}")
+    if inputs["aggregate_outliers"] is not None:
+        params = replace(params, min_voxel_points=params.unfiltered_min_voxel_points)
     registered = set(scene.background_positions(params.sweep_stride, params.stride_min_sweeps))
     clouds = MappedSequence(list(range(len(scene.sweeps))),
                             lambda position: inputs["background"][position] if position in registered else None)
@@ -28,7 +34,7 @@ def run(inputs: dict, params: RegistrationParams) -> dict:
     return {"registration": refine_poses(clouds, logged, params, times)}
 
 
-STAGE = Stage("register", inputs=("scene", "background"), outputs=("registration",),
+STAGE = Stage("register", inputs=("scene", "background", "aggregate_outliers"), outputs=("registration",),
               params_type=RegistrationParams, run=run,
               code=("nuplan_occ.fbsa.register", "nuplan_occ.fbsa.knn", "nuplan_occ.fbsa.tracked_nearest",
                     "nuplan_occ.fbsa.plane_normals", "nuplan_occ.fbsa.point_to_plane", "nuplan_occ.fbsa.voxel_reduce"),

@@ -3,7 +3,8 @@ pose, filter columns, QA figures, status), which the runner encodes into the sce
 (published atomically when the scene's last frame is in; the runner commits the rows). A frame whose sweep
 failed, or whose earlier frame stage failed, gets a record with status "failed" and the reason.
 
-Inputs: `scene`, `registration`, `outliers_removed`, `map_status`, `map_alignment`, `object_boxes`,
+Inputs: `scene`, `registration`, `outliers_removed` and `aggregate_outliers_removed` (qa_outliers_removed is
+their sum: the sweep's points the outlier test removed, on its own or in the aggregate), `map_status`, `map_alignment`, `object_boxes`,
 `object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`); prepared once per scene: `ego_speeds`;
 frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`. Frame output: `record` (FrameRecord). A
 row's `ego_to_global` is the refined pose corrected by the scene's map alignment: the pose the frame's labels
@@ -81,8 +82,9 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     position = frame["position"]
     sweep = scene.sweeps[position]
     pose = registration.poses[position] if alignment is None else alignment.correction @ registration.poses[position]
-    columns = frame_columns(scene, position, registration, inputs["ego_speeds"], inputs["outliers_removed"][position],
-                            inputs["map_status"], alignment)
+    outliers = inputs["outliers_removed"][position] + inputs["aggregate_outliers_removed"].get(position, 0)
+    columns = frame_columns(scene, position, registration, inputs["ego_speeds"], outliers, inputs["map_status"],
+                            alignment)
     record = FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
                          scene_name=task.scene_name, frame_index=sweep.index, token=sweep.token,
                          timestamp_us=sweep.timestamp_us, ego_to_global=pose, arrays={}, columns=columns)
@@ -104,7 +106,7 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     return {"record": record}
 
 
-STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "map_status", "map_alignment",
+STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "aggregate_outliers_removed", "map_status", "map_alignment",
                                 "object_boxes", "object_points", "grids", "final_semantics", "masks", "free_cleared"),
               outputs=("record",), params_type=WriteParams, run=run,
               code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "", per_frame=True,

@@ -46,13 +46,13 @@ class BackgroundAggregate:
                                    self.T_global_from_scene)
 
 
-def without_outliers(aggregate: BackgroundAggregate, method: str, nb_neighbors: int = 8,
-                     std_ratio: float = 2.0) -> BackgroundAggregate:
-    """The aggregate without the points that nuplan_occ.fbsa.outliers' `method` finds to be outliers, each
-    point scored against its own sweep's sensor origin ("range"); the aggregate itself when none is."""
-    keep = remove_statistical_outliers(aggregate.points, method=method, nb_neighbors=nb_neighbors,
-                                       std_ratio=std_ratio, origin=aggregate.sensor_origins)
-    return aggregate if keep.all() else aggregate.subset(keep)
+def without_outliers(aggregate: BackgroundAggregate, test: dict) -> tuple[BackgroundAggregate, np.ndarray]:
+    """The aggregate without the points that nuplan_occ.fbsa.outliers finds to be outliers (test: keyword
+    arguments of `remove_statistical_outliers` but origin; each point is scored against its own sweep's sensor
+    origin), or the aggregate itself when there is none; with the count removed per source frame (F,) int64."""
+    keep = remove_statistical_outliers(aggregate.points, origin=aggregate.sensor_origins, **test)
+    removed = np.bincount(aggregate.frame_ids[~keep], minlength=len(aggregate.frame_origins))
+    return (aggregate if keep.all() else aggregate.subset(keep)), removed
 
 
 def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:

@@ -72,8 +72,10 @@ class RegistrationParams:
     1: every sweep) and passes the others as None, so their poses are interpolated (`refine_poses`).
     stride_min_sweeps: scenes with fewer loaded sweeps than this register every sweep whatever the stride.
     min_voxel_points: the downsampled sweep and its contribution to the map keep only the voxels holding at
-    least this many of its points (1: all), so isolated returns do not enter ICP even when no outlier filter
-    ran on the sweep (FilterParams.method "none"; the measured trade is in bench/report-scale.md's notes).
+    least this many of its points (1: all), so isolated returns do not enter ICP when no outlier filter ran on
+    the sweep. It needs dense sweeps: on sparse ones few voxels hold two returns and the fit's gates reject
+    the sweep. unfiltered_min_voxel_points: the min_voxel_points the register stage uses for sweeps the filter
+    stage passed through unfiltered (FilterParams.aggregate_min_sweeps: long scenes of dense sweeps).
     """
 
     voxel_size_m: float = 0.3
@@ -97,6 +99,7 @@ class RegistrationParams:
     sweep_stride: int = 2
     stride_min_sweeps: int = 40
     min_voxel_points: int = 1
+    unfiltered_min_voxel_points: int = 2
 
 
 @dataclass

@@ -104,9 +104,11 @@ def test_outliers_of_the_aggregate_are_removed_against_each_points_own_sensor():
     points = np.vstack([ground, floaters])
     frame_ids = np.r_[np.repeat(np.arange(2, dtype=np.int32), len(ring)), rng.integers(0, 2, 40).astype(np.int32)]
     aggregate = BackgroundAggregate(points, frame_ids, sensors, np.eye(4))
-    kept = without_outliers(aggregate, "range")
+    kept, removed = without_outliers(aggregate, {"method": "range", "nb_neighbors": 8, "std_ratio": 2.0})
     assert (kept.points[:, 2] < 0.5).all()  # no floater left
     assert len(kept.points) >= 0.995 * len(ground)
     survivors = np.flatnonzero(np.isin(points[:, 0], kept.points[:, 0]) & (points[:, 2] < 0.5))
     np.testing.assert_array_equal(kept.frame_ids, frame_ids[survivors])
-    assert without_outliers(aggregate, "none") is aggregate
+    np.testing.assert_array_equal(removed, np.bincount(frame_ids, minlength=2) - np.bincount(kept.frame_ids, minlength=2))
+    unchanged, none_removed = without_outliers(aggregate, {"method": "none"})
+    assert unchanged is aggregate and none_removed.tolist() == [0, 0]
