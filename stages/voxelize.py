@@ -23,7 +23,7 @@ from nuplan_occ.io.types import Boxes
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.compose import FrameGrids, PlacedObject, compose_frame
-from nuplan_occ.voxel.movers import MoverVoxels, mover_voxels
+from nuplan_occ.voxel.movers import MoverVoxels, mover_voxels, recurring_points
 from nuplan_occ.voxel.surface_tiles import build_surface_tiles
 
 
@@ -41,10 +41,15 @@ class VoxelizeParams:
     sparse_solid_categories: a voxel takes their carved solid only where it holds at least solid_min_cells
     solid cells (a 0.25 m voxel holds ~16 cells of 0.1 m) or a cell with an observed point: a voxel the
     rays crossed but left a few never-crossed cells in (above a hood, behind a bumper) is free.
-    unboxed_movers: paint the frame's own points the aggregate removed as dynamic into empty voxels, a
-    cluster spanning mover_vehicle_extent_m labeled vehicle, else other, clusters under
-    mover_min_voxels skipped (nuplan_occ.voxel.movers): a moving object without a box is occupied where it
-    is now instead of missing from every frame."""
+    unboxed_movers: paint the frame's own points the aggregate removed as dynamic into empty voxels, clusters
+    under mover_min_voxels skipped (nuplan_occ.voxel.movers): a moving object without a box is occupied where
+    it is now instead of missing from every frame. A cluster is `other` when its lowest voxel is more than
+    mover_ground_reach_m above the frame's ground; else a vehicle from mover_vehicle_extent_m or when linked
+    to such a cluster by gaps of at most mover_fragment_reach_m; a bicycle from mover_bicycle_extent_m unless
+    at least mover_static_fraction of its points lie in scene cells of a voxel's size where the output frames
+    mover_static_frames before or after it have flagged points too (static structure; a frame without both
+    such neighbours has no evidence of motion: no bicycle); else other. The measurements behind these are in
+    bench/report-scale.md's notes."""
 
     fill_objects: bool = True
     pedestrian_window: int = 2
@@ -57,6 +62,11 @@ class VoxelizeParams:
     unboxed_movers: bool = True
     mover_min_voxels: int = 2
     mover_vehicle_extent_m: float = 2.5
+    mover_bicycle_extent_m: float = 1.0
+    mover_static_frames: int = 5
+    mover_static_fraction: float = 0.2
+    mover_ground_reach_m: float = 0.75
+    mover_fragment_reach_m: float = 1.0
 
 
 def box_lattice_points(size: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -122,10 +132,26 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
         vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects,
         ground_layer_classes=tuple(LABELS.box_category_to_id[c] for c in params.ground_layer_categories))
     if params.unboxed_movers:
-        movers = mover_voxels(transform_points(T_ego_from_scene, inputs["frame_movers"][position]), DEFAULT_GRID,
-                              params.mover_min_voxels, params.mover_vehicle_extent_m)
+        points = inputs["frame_movers"][position]
+        others = neighbour_movers(inputs["frame_movers"], position, params.mover_static_frames)
+        movers = mover_voxels(transform_points(T_ego_from_scene, points), DEFAULT_GRID, params.mover_min_voxels,
+                              params.mover_vehicle_extent_m, bicycle_extent_m=params.mover_bicycle_extent_m,
+                              recurring=recurring_points(points, others, DEFAULT_GRID.voxel_size) if others else None,
+                              static_fraction=params.mover_static_fraction, ground_height=grids.ground_height,
+                              ground_reach_m=params.mover_ground_reach_m,
+                              fragment_reach_m=params.mover_fragment_reach_m)
         grids.mover_voxels = paint_empty(grids, movers)
     return {"grids": grids}
+
+
+def neighbour_movers(frame_movers: dict[int, np.ndarray], position: int, frames: int) -> list[np.ndarray]:
+    """The flagged points (scene frame) of the output frames `frames` before and after the one at `position`
+    (frame_movers: output position -> (N, 3) scene-frame points); [] unless the scene has both."""
+    positions = sorted(frame_movers)
+    n = positions.index(position)
+    if n - frames < 0 or n + frames >= len(positions):
+        return []
+    return [frame_movers[positions[n - frames]], frame_movers[positions[n + frames]]]
 
 
 def paint_empty(grids: FrameGrids, movers: MoverVoxels) -> int:
@@ -139,5 +165,6 @@ def paint_empty(grids: FrameGrids, movers: MoverVoxels) -> int:
 STAGE = Stage("voxelize",
               inputs=("scene", "registration", "object_boxes", "background_aggregate", "background_surface", "objects",
                       "object_surfaces", "object_solids", "frame_movers"),
-              outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "",
+              outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel", "nuplan_occ.fbsa.voxel_reduce"),
+              doc=__doc__ or "",
               per_frame=True, prepare=prepare)

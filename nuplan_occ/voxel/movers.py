@@ -3,13 +3,24 @@
 detection), turned into labeled voxels of that frame only, so such an object is occupied where it is now
 and leaves no trail where it was.
 
-A mover has no box, so its class is read from its size: each cluster of its voxels (voxels at most
-`gap_voxels` apart join one cluster, as parts of the object may have stayed in the background) is a
-vehicle when its footprint spans at least `vehicle_extent_m` along x or y (a car seen side-on, a truck
-or bus from any side: longer than any bicycle), else `other` (unclassified: a small flagged cluster may
-be a cyclist, a pedestrian, a car seen from behind or static structure seen at a grazing angle);
-clusters of fewer than `min_voxels` voxels are LiDAR noise and are not painted. Instance ids and flow
-stay 0 (unknown without a track).
+A mover has no box, so its class is read from where it stands, its size and its motion, per cluster of its
+voxels (voxels at most `gap_voxels` apart join one cluster, as parts of the object may have stayed in the
+background). Moving things are vehicles, bicycles (nuPlan's class holds motorcycles too) and pedestrians;
+the other box categories are static. A cluster is
+- `other` when its lowest voxel is more than `ground_reach_m` above the ground of its column (road users
+  stand on the ground; a flagged patch of canopy or facade does not);
+- a vehicle when its footprint spans at least `vehicle_extent_m` along x or y (a car seen side-on, a truck
+  or bus from any side: longer than any bicycle);
+- part of a vehicle when shorter but linked to a vehicle cluster by gaps of at most `fragment_reach_m`
+  (through other clusters too: a vehicle's side seen in pieces, where parts stayed in the background);
+- a bicycle from `bicycle_extent_m` (longer than a pedestrian) when it moved: static structure the dynamic
+  test flagged (through gaps, at grazing angles) is flagged in the same place in other frames too, while a
+  cyclist has left its place within half a second. Clusters of which at least `static_fraction` of the
+  points recur (`recurring`: their place holds flagged points in another frame) are `other`. The test does
+  not serve vehicles: one moving along its length covers the cells it leaves;
+- else `other` (a pedestrian, a car seen from behind, a fragment).
+Clusters of fewer than `min_voxels` voxels are LiDAR noise and are not painted. Instance ids and flow stay
+0 (unknown without a track).
 """
 
 from __future__ import annotations
@@ -19,8 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from nuplan_occ.fbsa.voxel_reduce import voxel_keys
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
-from nuplan_occ.labels import OTHER, VEHICLE
+from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
 
 
 @dataclass(frozen=True)
@@ -32,10 +44,17 @@ class MoverVoxels:
 
 
 def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxels: int = 2,
-                 vehicle_extent_m: float = 2.5, gap_voxels: int = 1) -> MoverVoxels:
-    """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc)."""
+                 vehicle_extent_m: float = 2.5, gap_voxels: int = 1, bicycle_extent_m: float = 1.0,
+                 recurring: np.ndarray | None = None, static_fraction: float = 0.2,
+                 ground_height: np.ndarray | None = None, ground_reach_m: float = 0.75,
+                 fragment_reach_m: float = 1.0) -> MoverVoxels:
+    """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc).
+    recurring: (N,) bool, whether each point's place holds flagged points in the other frames too (None: no
+    other frames to tell, so no cluster is known to have moved and none is a bicycle). ground_height: (X, Y) ground z per column, m, ego
+    frame, NaN unknown (None, or unknown under a whole cluster: the cluster is taken as standing on it)."""
     idx, inside = grid.point_to_index(points_ego)
-    idx = np.unique(idx[inside], axis=0)
+    recurring = np.ones(len(idx), dtype=bool) if recurring is None else np.asarray(recurring, dtype=bool)
+    idx, point_voxel = np.unique(idx[inside], axis=0, return_inverse=True)
     if not len(idx):
         return MoverVoxels(np.zeros((0, 3), np.int64), np.zeros(0, np.uint8))
     low = idx.min(axis=0) - gap_voxels
@@ -52,6 +71,41 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
     own[tuple(local.T)] = cluster_of + 1  # each cluster's extent over its own voxels, not the dilation
     span = np.array([[(box[axis].stop - box[axis].start) * grid.voxel_size for axis in (0, 1)]
                      for box in ndimage.find_objects(own, max_label=count)])
-    cluster_class = np.where(span.max(axis=1) >= vehicle_extent_m, VEHICLE, OTHER).astype(np.uint8)
+    point_cluster = cluster_of[point_voxel.reshape(-1)]
+    share = np.bincount(point_cluster, weights=recurring[inside], minlength=count) / np.maximum(
+        np.bincount(point_cluster, minlength=count), 1)
+    extent = span.max(axis=1)
+    grounded = _standing(idx, cluster_of, count, grid, ground_height, ground_reach_m)
+    vehicle = grounded & (extent >= vehicle_extent_m)
+    fragment = np.zeros(count, dtype=bool)
+    half_reach = int(round(fragment_reach_m / (2 * grid.voxel_size)))
+    if half_reach and vehicle.any():  # clusters whose gaps are at most fragment_reach_m form one group
+        groups, _ = ndimage.label(ndimage.binary_dilation(own > 0, neighbourhood, iterations=half_reach),
+                                  structure=neighbourhood)
+        cluster_group = np.zeros(count, dtype=np.int64)
+        cluster_group[cluster_of] = groups[tuple(local.T)]
+        fragment = grounded & np.isin(cluster_group, cluster_group[vehicle])
+    cluster_class = np.select([~grounded, vehicle | fragment, (extent >= bicycle_extent_m) & (share < static_fraction)],
+                              [OTHER, VEHICLE, BICYCLE], OTHER).astype(np.uint8)
     keep = sizes[cluster_of] >= min_voxels
     return MoverVoxels(idx[keep], cluster_class[cluster_of[keep]])
+
+
+def _standing(idx: np.ndarray, cluster_of: np.ndarray, count: int, grid: GridSpec, ground_height: np.ndarray | None,
+              reach_m: float) -> np.ndarray:
+    """(count,) bool per cluster: its lowest voxel centre (over the columns of known ground) lies at most reach_m
+    above its column's ground; True where no column of the cluster has a known ground."""
+    if ground_height is None:
+        return np.ones(count, dtype=bool)
+    above = grid.z_min + (idx[:, 2] + 0.5) * grid.voxel_size - ground_height[idx[:, 0], idx[:, 1]]
+    lowest = np.full(count, np.inf)
+    np.minimum.at(lowest, cluster_of[np.isfinite(above)], above[np.isfinite(above)])
+    return (lowest <= reach_m + 1e-9) | np.isinf(lowest)
+
+
+def recurring_points(points: np.ndarray, others: list[np.ndarray], cell_m: float) -> np.ndarray:
+    """(N,) bool: whether each of the points (N, 3) shares its cell (edge cell_m, m; all points in one frame,
+    e.g. the scene frame) with a point of any of the `others` ((M_k, 3) each)."""
+    if not others:
+        return np.zeros(len(points), dtype=bool)
+    return np.isin(voxel_keys(points, cell_m), np.concatenate([voxel_keys(o, cell_m) for o in others]))

@@ -1,11 +1,11 @@
-"""Unboxed movers: a frame's dynamic points become voxels labeled by their cluster's size."""
+"""Unboxed movers: a frame's dynamic points become voxels labeled by their cluster's motion and size."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID
-from nuplan_occ.labels import OTHER, VEHICLE
+from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
 from nuplan_occ.voxel.movers import mover_voxels
 
 
@@ -36,23 +36,53 @@ def test_clusters_are_labeled_by_footprint_and_noise_is_skipped() -> None:
     assert len(np.unique(result.indices, axis=0)) == len(result.indices) == len(expected)
 
 
-def test_fragments_a_voxel_apart_count_as_one_object() -> None:
-    """A truck's roof whose middle stayed in the background: a 1 m piece one empty voxel from the rest is
-    part of the vehicle, while on its own (gap_voxels 0) it is too small to be one."""
+def test_fragments_near_a_vehicle_count_as_part_of_it() -> None:
+    """A truck's roof whose middle stayed in the background: a 1 m piece one empty voxel from the rest joins
+    its cluster (gap_voxels), and one three voxels away is a fragment of it (fragment_reach_m); on its own
+    (neither) it is too short to be a vehicle."""
     roof = _surface_points((20.1, 5.1, 0.6), (8.0, 1.0, 3.0))
     roof = roof[roof[:, 2] > 2.0]
     piece = roof[:, 0] < 17.0
-    gap = (roof[:, 0] >= 17.0) & (roof[:, 0] < 17.25)
-    joined = mover_voxels(roof[~gap], DEFAULT_GRID)
-    alone = mover_voxels(roof[~gap], DEFAULT_GRID, gap_voxels=0)
-    piece_voxels = np.unique(DEFAULT_GRID.point_to_index(roof[piece])[0], axis=0)
-    def classes_of(result):
-        hit = (result.indices[:, None, :] == piece_voxels[None]).all(axis=2).any(axis=1)
+    def classes_of(result, points):
+        voxels = np.unique(DEFAULT_GRID.point_to_index(points)[0], axis=0)
+        hit = (result.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
         return set(result.class_ids[hit].tolist())
-    assert classes_of(joined) == {VEHICLE}
-    assert classes_of(alone) == {OTHER}
+    for gap_m in (0.25, 0.75):
+        gapped = roof[(roof[:, 0] < 17.0) | (roof[:, 0] >= 17.0 + gap_m)]
+        assert classes_of(mover_voxels(gapped, DEFAULT_GRID), roof[piece]) == {VEHICLE}
+        alone = mover_voxels(gapped, DEFAULT_GRID, gap_voxels=0, fragment_reach_m=0.0)
+        assert VEHICLE not in classes_of(alone, roof[piece])
 
 
 def test_no_points_no_voxels() -> None:
     result = mover_voxels(np.zeros((0, 3)), DEFAULT_GRID)
     assert result.indices.shape == (0, 3) and result.class_ids.shape == (0,)
+
+
+def test_clusters_are_classed_by_ground_contact_length_and_motion() -> None:
+    """On flat ground at z = -0.9 m: a cyclist (1.8 m) and a car (4.5 m) standing on it, a pedestrian (0.6 m),
+    a group of posts (1.5 m) whose flagged points recur in another frame (static structure the dynamic test
+    flagged) and a 3 m patch of canopy 3 m up. The cyclist is a bicycle though a tenth of its points recur by
+    chance; the car is a vehicle though most of its points recur (it slides along its length); posts, canopy
+    and pedestrian are `other`."""
+    cyclist = _surface_points((12.1, 3.1, 0.0), (1.8, 0.6, 1.7))
+    car = _surface_points((25.1, -6.1, -0.1), (4.5, 1.8, 1.5))
+    pedestrian = _surface_points((8.1, -3.1, 0.0), (0.6, 0.6, 1.7))
+    posts = _surface_points((-20.1, -12.1, -0.35), (1.5, 0.3, 1.0))
+    canopy = _surface_points((-15.1, 12.1, 3.0), (3.0, 2.0, 0.5))
+    parts = [cyclist, car, pedestrian, posts, canopy]
+    rng = np.random.default_rng(0)
+    recurring = [rng.random(len(cyclist)) < 0.1, rng.random(len(car)) < 0.6, np.zeros(len(pedestrian), bool),
+                 rng.random(len(posts)) < 0.3, np.zeros(len(canopy), bool)]
+    ground = np.full(DEFAULT_GRID.shape[:2], -0.9)
+    ground[:10] = np.nan  # unknown ground far behind: no cluster there
+    result = mover_voxels(np.vstack(parts), DEFAULT_GRID, recurring=np.concatenate(recurring), ground_height=ground)
+    for part, expected in zip(parts, (BICYCLE, VEHICLE, OTHER, OTHER, OTHER)):
+        voxels = np.unique(DEFAULT_GRID.point_to_index(part)[0], axis=0)
+        hit = (result.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
+        assert hit.sum() == len(voxels) and set(result.class_ids[hit].tolist()) == {expected}
+    without = mover_voxels(np.vstack(parts), DEFAULT_GRID)  # no ground, no other frames: all stand, none known to move
+    for part, expected in ((canopy, VEHICLE), (cyclist, OTHER), (posts, OTHER)):
+        voxels = np.unique(DEFAULT_GRID.point_to_index(part)[0], axis=0)
+        hit = (without.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
+        assert set(without.class_ids[hit].tolist()) == {expected}
