@@ -45,24 +45,22 @@ def point_coverage(points_ego: np.ndarray, occupied: np.ndarray, grid: GridSpec 
 @numba.njit(cache=True)
 def _count_near_occupied(index: np.ndarray, occupied: np.ndarray) -> int:
     """How many of the voxel indices (N, 3), all inside `occupied` (X, Y, Z) bool, have an occupied voxel among
-    themselves and their 26 neighbours (a point stops at the first one found, its own voxel first)."""
-    shape = occupied.shape
+    themselves and their 26 neighbours."""
     count = 0
     for n in range(index.shape[0]):
-        i, j, k = index[n, 0], index[n, 1], index[n, 2]
-        if occupied[i, j, k]:
-            count += 1
-            continue
-        found = False
-        for a in range(max(i - 1, 0), min(i + 2, shape[0])):
-            for b in range(max(j - 1, 0), min(j + 2, shape[1])):
-                for c in range(max(k - 1, 0), min(k + 2, shape[2])):
-                    if occupied[a, b, c]:
-                        found = True
-                        break
-                if found:
-                    break
-            if found:
-                break
-        count += found
+        count += _occupied_around(occupied, index[n, 0], index[n, 1], index[n, 2])
     return count
+
+
+@numba.njit(cache=True)
+def _occupied_around(occupied: np.ndarray, i: int, j: int, k: int) -> bool:
+    """Whether voxel (i, j, k) or one of its 26 neighbours inside the grid is occupied (its own voxel first)."""
+    if occupied[i, j, k]:
+        return True
+    shape = occupied.shape
+    for a in range(max(i - 1, 0), min(i + 2, shape[0])):
+        for b in range(max(j - 1, 0), min(j + 2, shape[1])):
+            for c in range(max(k - 1, 0), min(k + 2, shape[2])):
+                if occupied[a, b, c]:
+                    return True
+    return False

@@ -50,8 +50,9 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
                  fragment_reach_m: float = 1.0) -> MoverVoxels:
     """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc).
     recurring: (N,) bool, whether each point's place holds flagged points in the other frames too (None: no
-    other frames to tell, so no cluster is known to have moved and none is a bicycle). ground_height: (X, Y) ground z per column, m, ego
-    frame, NaN unknown (None, or unknown under a whole cluster: the cluster is taken as standing on it)."""
+    other frames to tell, so no cluster is known to have moved and none is a bicycle). ground_height: (X, Y)
+    ground z per column, m, ego frame, NaN unknown (None, or unknown under a whole cluster: the cluster is
+    taken as standing on it)."""
     idx, inside = grid.point_to_index(points_ego)
     recurring = np.ones(len(idx), dtype=bool) if recurring is None else np.asarray(recurring, dtype=bool)
     idx, point_voxel = np.unique(idx[inside], axis=0, return_inverse=True)
