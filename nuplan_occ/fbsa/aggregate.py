@@ -27,18 +27,13 @@ RIGID_CATEGORIES = ("vehicle", "bicycle", "traffic_cone", "barrier", "czone_sign
 class BackgroundAggregate:
     """points (M, 3) in the SCENE frame; frame_ids (M,) int32 index of each point's source frame;
     frame_origins (F, 3): each source frame's sensor origin in the scene frame; T_global_from_scene (4, 4).
-    A point's sensor origin is its frame's (`sensor_origins`, made when asked), so the aggregate holds no
-    second point-sized array of coordinates."""
+    A point's sensor origin is its frame's (frame_origins[frame_ids]), so the aggregate holds no second
+    point-sized array of coordinates."""
 
     points: np.ndarray
     frame_ids: np.ndarray
     frame_origins: np.ndarray
     T_global_from_scene: np.ndarray
-
-    @property
-    def sensor_origins(self) -> np.ndarray:
-        """(M, 3) each point's sensor origin, scene frame."""
-        return self.frame_origins[self.frame_ids]
 
     def subset(self, keep: np.ndarray) -> "BackgroundAggregate":
         """The aggregate of the points selected by `keep` (a bool mask or indices over the points)."""
@@ -50,7 +45,8 @@ def without_outliers(aggregate: BackgroundAggregate, test: dict) -> tuple[Backgr
     """The aggregate without the points that nuplan_occ.fbsa.outliers finds to be outliers (test: keyword
     arguments of `remove_statistical_outliers` but origin; each point is scored against its own sweep's sensor
     origin), or the aggregate itself when there is none; with the count removed per source frame (F,) int64."""
-    keep = remove_statistical_outliers(aggregate.points, origin=aggregate.sensor_origins, **test)
+    keep = remove_statistical_outliers(aggregate.points, origin=aggregate.frame_origins,
+                                       origin_ids=aggregate.frame_ids, **test)
     removed = np.bincount(aggregate.frame_ids[~keep], minlength=len(aggregate.frame_origins))
     return (aggregate if keep.all() else aggregate.subset(keep)), removed
 

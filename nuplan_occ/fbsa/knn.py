@@ -12,6 +12,7 @@ cloud (itself included); `KdTree` answers queries of other points, optionally wi
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numba
 import numpy as np
@@ -177,17 +178,10 @@ def _boxes_distance2(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b:
 
 
 @numba.njit(cache=True)
-def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
-                 lo: np.ndarray, hi: np.ndarray, k: int) -> np.ndarray:
-    """(N, k) ascending distances from every point to its k nearest points (itself included), one leaf of
-    queries at a time: each query first takes its own leaf's points, then the leaf's queries share one walk
-    of the tree, pruned by box-to-box distance against the largest k-th best of the leaf (a query scans a
-    leaf only when that leaf's box is nearer to it than its own k-th best)."""
-    n = len(ordered)
-    distances = np.full((n, k), np.inf)
-    leaves = np.empty(n, np.int64)
-    stack = np.empty(2 * n + 1, np.int64)
-    stack_d2 = np.empty(2 * n + 1)
+def _leaves(child: np.ndarray) -> np.ndarray:
+    """The tree's leaf nodes from left to right: their slices of the points' order follow one another."""
+    leaves = np.empty(len(child), np.int64)
+    stack = np.empty(len(child), np.int64)
     n_leaves, top = 0, 1
     stack[0] = 0
     while top:
@@ -199,11 +193,27 @@ def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end:
         else:
             stack[top], stack[top + 1] = child[node] + 1, child[node]
             top += 2
+    return leaves[:n_leaves]
+
+
+@numba.njit(cache=True)
+def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
+                 lo: np.ndarray, hi: np.ndarray, leaves: np.ndarray, k: int) -> np.ndarray:
+    """(m, k) ascending distances from each point of the given leaves (m points: ordered[start[leaves[0]]:
+    end[leaves[-1]]], in that order; the leaves consecutive) to its k nearest points of the whole cloud
+    (itself included), one leaf of queries at a time: each query first takes its own leaf's points, then the
+    leaf's queries share one walk of the tree, pruned by box-to-box distance against the largest k-th best of
+    the leaf (a query scans a leaf only when that leaf's box is nearer to it than its own k-th best). A leaf's
+    rows do not depend on which other leaves are searched in the same call."""
+    n = len(ordered)
+    first_row = start[leaves[0]]
+    distances = np.full((end[leaves[-1]] - first_row, k), np.inf)
+    stack = np.empty(2 * n + 1, np.int64)
+    stack_d2 = np.empty(2 * n + 1)
     best = np.empty((LEAF_SIZE_CAP, k))
     best_index = np.empty((LEAF_SIZE_CAP, k), np.int64)
     have = np.empty(LEAF_SIZE_CAP, np.int64)
-    for li in range(n_leaves):
-        leaf = leaves[li]
+    for leaf in leaves:
         s, e = start[leaf], end[leaf]
         m = e - s
         if m > best.shape[0]:
@@ -237,9 +247,8 @@ def _self_search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end:
                                  _boxes_distance2(lo[leaf], hi[leaf], lo[first], hi[first]),
                                  _boxes_distance2(lo[leaf], hi[leaf], lo[first + 1], hi[first + 1]))
         for q in range(m):
-            row = order[s + q]
             for j in range(have[q]):
-                distances[row, j] = math.sqrt(best[q, j])
+                distances[s + q - first_row, j] = math.sqrt(best[q, j])
     return distances
 
 
@@ -261,10 +270,35 @@ class KdTree:
         return _search(self._ordered, *self._nodes, pts, np.arange(len(pts)), int(k), float(distance_upper_bound) ** 2)
 
 
-def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
-    """(N, k) ascending distances (m) from each point (N, 3) to its k nearest points, itself included
-    (requires 1 <= k <= N); the queries of one leaf share one walk of the tree (`_self_search`)."""
+CHUNK_ROWS = 1 << 18
+"""Points per chunk of `knn_distance_chunks` (a chunk's distances are CHUNK_ROWS x k float64)."""
+
+
+def knn_distance_chunks(points: np.ndarray, k: int, chunk_rows: int = CHUNK_ROWS
+                        ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(rows (m,), distances (m, k)) chunks of about chunk_rows points that together cover every point of
+    points (N, 3) once: the ascending distances (m) from points[rows] to their k nearest points of the whole
+    cloud, itself included (requires 1 <= k <= N). The rows of a chunk are neighbouring leaves of one kd-tree,
+    whose queries share one walk of the tree (`_self_search`); only one chunk's distances are held at a time."""
     tree = KdTree(points)
     if not 1 <= k <= tree.n:
         raise ValueError(f"knn_distances: need 1 <= k <= {tree.n} points, got k = {k}")
-    return _self_search(tree._ordered, *tree._nodes, k)
+    order, start, end = tree._nodes[:3]
+    leaves = _leaves(tree._nodes[3])
+    leaf_end = end[leaves]
+    first = 0
+    while first < len(leaves):
+        last = int(np.searchsorted(leaf_end, start[leaves[first]] + chunk_rows, side="left")) + 1
+        last = min(last, len(leaves))
+        chunk = leaves[first:last]
+        yield order[start[chunk[0]]:end[chunk[-1]]], _self_search(tree._ordered, *tree._nodes, chunk, k)
+        first = last
+
+
+def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) ascending distances (m) from each point (N, 3) to its k nearest points, itself included
+    (requires 1 <= k <= N)."""
+    distances = np.empty((len(points), k))
+    for rows, chunk in knn_distance_chunks(points, k):
+        distances[rows] = chunk
+    return distances

@@ -24,7 +24,7 @@ import numpy as np
 import open3d as o3d
 
 from nuplan_occ.fbsa import FbsaInputError
-from nuplan_occ.fbsa.knn import knn_distances
+from nuplan_occ.fbsa.knn import knn_distance_chunks
 
 OUTLIER_METHODS = ("global", "knn", "range", "none")
 MIN_RANGE_M = 1.0
@@ -45,10 +45,13 @@ def _knn_mask(points: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.nda
     return keep
 
 
-def _range_mask(points: np.ndarray, origin: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:
+def _range_mask(points: np.ndarray, origin: np.ndarray, origin_ids: np.ndarray | None, nb_neighbors: int,
+                std_ratio: float) -> np.ndarray:
     k = min(nb_neighbors, len(points))
-    mean_dist = knn_distances(points, k).mean(axis=1)  # itself included at distance 0, as in Open3D
-    score = mean_dist / np.maximum(np.linalg.norm(points - origin, axis=1), MIN_RANGE_M)
+    score = np.empty(len(points))
+    for rows, distances in knn_distance_chunks(points, k):  # each point's own distance 0 included, as in Open3D
+        sensor = origin if origin.ndim == 1 else origin[rows if origin_ids is None else origin_ids[rows]]
+        score[rows] = distances.mean(axis=1) / np.maximum(np.linalg.norm(points[rows] - sensor, axis=1), MIN_RANGE_M)
     spread = score[score > 0]  # exact duplicates do not enter the statistics (and are kept, unlike Open3D)
     if len(spread) < 2:
         return np.ones(len(points), dtype=bool)
@@ -62,12 +65,14 @@ def remove_statistical_outliers(
     std_ratio: float = 2.0,
     k_sigma: float = 3.0,
     origin: np.ndarray | None = None,
+    origin_ids: np.ndarray | None = None,
 ) -> np.ndarray:
     """Keep mask (N,) bool of the points that are not statistical outliers.
 
     points (N, 3) m, any frame; origin (3,): the sensor in that frame, used by "range" only (default: the frame
-    origin); (N, 3) gives each point its own sensor origin. nb_neighbors / std_ratio: the kNN test of "knn" and
-    "range"; k_sigma: the "global" rule.
+    origin); (N, 3) gives each point its own sensor origin, and (F, 3) with origin_ids (N,) int gives point i
+    the origin origin[origin_ids[i]] (e.g. one per sweep of an aggregate). nb_neighbors / std_ratio: the kNN
+    test of "knn" and "range"; k_sigma: the "global" rule.
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -81,6 +86,10 @@ def remove_statistical_outliers(
     if method == "knn":
         return _knn_mask(pts, nb_neighbors, std_ratio)
     center = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
-    if center.shape not in ((3,), pts.shape):
+    ids = None if origin_ids is None else np.asarray(origin_ids)
+    if ids is None and center.shape not in ((3,), pts.shape):
         raise FbsaInputError(f"remove_statistical_outliers: origin must be (3,) or {pts.shape}, got {center.shape}")
-    return _range_mask(pts, center, nb_neighbors, std_ratio)
+    if ids is not None and (center.ndim != 2 or center.shape[1] != 3 or ids.shape != (len(pts),)):
+        raise FbsaInputError(f"remove_statistical_outliers: origin_ids {ids.shape} must give each of the {len(pts)} "
+                             f"points a row of origin (F, 3), got origin {center.shape}")
+    return _range_mask(pts, center, ids, nb_neighbors, std_ratio)

@@ -28,7 +28,7 @@ def test_background_lands_in_the_scene_frame():
     np.testing.assert_allclose(transform_points(poses[0], agg.points), np.vstack([world] * 3), atol=1e-6)
     np.testing.assert_array_equal(agg.frame_ids, np.repeat(np.arange(3), 300).astype(np.int32))
     expected_origin = transform_points(invert_transform(poses[0]) @ poses[2], origins[2][None])[0]
-    np.testing.assert_allclose(agg.sensor_origins[agg.frame_ids == 2], np.tile(expected_origin, (300, 1)), atol=1e-9)
+    np.testing.assert_allclose(agg.frame_origins[agg.frame_ids[agg.frame_ids == 2]], np.tile(expected_origin, (300, 1)), atol=1e-9)
 
     down = aggregate_background(clouds, origins, poses, T_global_from_scene=poses[1], voxel_downsample_m=0.5)
     keys = np.floor(down.points / 0.5).astype(np.int64)

@@ -60,7 +60,7 @@ def test_filters_on_single_sweeps(seq):
 def test_filters_on_an_aggregate(seq):
     agg = aggregate_background(seq.clouds, np.tile(SENSOR_EGO, (len(seq.clouds), 1)), seq.truth,
                                voxel_downsample_m=0.05)
-    pts, org, bad = _inject(agg.points, agg.sensor_origins, np.random.default_rng(8))
+    pts, org, bad = _inject(agg.points, agg.frame_origins[agg.frame_ids], np.random.default_rng(8))
     scores = _scores(pts, org, bad)
     print("aggregate (caught, lost):", {m: (round(s.caught, 4), round(s.lost, 4)) for m, s in scores.items()})
     assert scores["range"].caught >= 0.75 and scores["range"].lost <= 0.005
@@ -96,3 +96,29 @@ def test_knn_distances_equal_kd_tree_queries():
     np.testing.assert_array_equal(knn_distances(points[:7], 7), cKDTree(points[:7]).query(points[:7], k=7)[0])
     with pytest.raises(ValueError):
         knn_distances(points[:3], 4)
+
+
+def test_knn_distance_chunks_cover_every_point_once_with_the_whole_clouds_distances():
+    from nuplan_occ.fbsa.knn import knn_distance_chunks, knn_distances
+
+    rng = np.random.default_rng(6)
+    points = np.vstack([rng.normal(size=(5000, 3)) * [30.0, 10.0, 1.0], np.repeat([[1.0, 1.0, 0.0]], 90, axis=0)])
+    whole = knn_distances(points, 8)
+    chunks = list(knn_distance_chunks(points, 8, chunk_rows=700))
+    assert len(chunks) > 5 and all(len(rows) < 700 + 100 for rows, _ in chunks)
+    rows = np.concatenate([r for r, _ in chunks])
+    np.testing.assert_array_equal(np.sort(rows), np.arange(len(points)))
+    np.testing.assert_array_equal(np.vstack([d for _, d in chunks]), whole[rows])
+
+
+def test_range_filter_takes_per_sweep_origins_through_ids():
+    rng = np.random.default_rng(9)
+    sweeps = np.array([[0.0, 0.0, 2.0], [40.0, 0.0, 2.0], [80.0, 0.0, 2.0]])
+    ids = rng.integers(0, 3, 6000)
+    points = sweeps[ids] + rng.normal(size=(6000, 3)) * [15.0, 15.0, 0.3]
+    points[:30] += [0.0, 0.0, 25.0]  # floaters
+    by_id = remove_statistical_outliers(points, origin=sweeps, origin_ids=ids)
+    np.testing.assert_array_equal(by_id, remove_statistical_outliers(points, origin=sweeps[ids]))
+    assert not by_id[:30].any() and by_id[30:].mean() > 0.95
+    with pytest.raises(FbsaInputError):
+        remove_statistical_outliers(points, origin=sweeps, origin_ids=ids[:10])
