@@ -10,7 +10,7 @@ The outlier test the filter stage left to the aggregate (`aggregate_outliers`, l
 downsampled aggregate, before the dynamic test.
 
 Inputs: `scene`, `background` (of the sweeps at `background_positions`), `aggregate_outliers`, `registration`, `object_boxes`,
-`object_points` (of every loaded sweep), `observations` and `observed_bits` (the lidar_rays stage's
+`object_points` (of every loaded sweep), `observations` and `observation_bits` (the lidar_rays stage's
 observation grids of the output frames, the dynamic test's evidence from those sweeps).
 Outputs: `background_aggregate` (BackgroundAggregate, scene frame, its points in ascending scene x, so a
 frame reads only the slice within its grid's reach), `objects` (track -> ObjectAggregate),
@@ -38,7 +38,7 @@ from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.sequences import MappedSequence
 from nuplan_occ.voxel.free_space import unpacked_observation
 from nuplan_occ.voxel.visibility import lidar_observation
-from stages.visibility import RayObservations
+from stages.visibility import RayObservations, split_observation_bits
 
 
 @dataclass(frozen=True)
@@ -117,13 +117,12 @@ def cleared_background(background: Sequence, object_boxes: Sequence, position: i
     return cloud[outside_boxes(cloud, object_boxes[position], params.object_clearance_m, params.ground_keep_m)]
 
 
-def sweep_observation(scene, position: int, observations: RayObservations, observed_bits: Sequence) -> np.ndarray:
+def sweep_observation(scene, position: int, observations: RayObservations, observation_bits: Sequence) -> np.ndarray:
     """The `lidar_observation` grid of the sweep at `position`: unpacked from the lidar_rays stage's bits
     when it is an output frame there, else cast from its returns."""
     token = scene.sweeps[position].token
     if token in observations.tokens:
-        row = observations.row(token)
-        return unpacked_observation(observed_bits[row], observations.free[row], DEFAULT_GRID)
+        return unpacked_observation(*split_observation_bits(observation_bits[observations.row(token)]), DEFAULT_GRID)
     return lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
 
 
@@ -140,7 +139,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
         return cleared_background(inputs["background"], inputs["object_boxes"], position, params)
 
     def observation_at(position: int) -> np.ndarray:
-        return sweep_observation(scene, position, inputs["observations"], inputs["observed_bits"])
+        return sweep_observation(scene, position, inputs["observations"], inputs["observation_bits"])
 
     clouds = MappedSequence(with_background, cleared)
     background = aggregate_background(
@@ -187,7 +186,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
 
 
 STAGE = Stage("aggregate", inputs=("scene", "background", "background_positions", "aggregate_outliers", "registration",
-                            "object_boxes", "object_points", "observations", "observed_bits"),
+                            "object_boxes", "object_points", "observations", "observation_bits"),
               outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers",
                        "aggregate_outliers_removed"),
               params_type=AggregateParams,

@@ -7,11 +7,13 @@ occlusion by the frame's (cleared) occupancy.
 
 Rays start at the merged LiDAR frame's origin (the only sensor pose nuPlan stores).
 Scene pass `lidar_rays` (params section `visibility`): input `scene`; outputs `observations`
-(RayObservations: every loaded output frame's FREE grid as packed bits, 640 KB each, so a frame can use the
-other frames' free space without holding their grids) and `observed_bits` (an item output, one row of
-`observations` per element: that frame's observed grid as packed bits, read back by its own frame only).
+(RayObservations: the tokens of the loaded output frames, one row each) and `observation_bits` (an item
+output, one element per row: that frame's observed grid and its FREE grid (`packed_free`) as packed bits,
+640 KB each, read back when used: no scene stage holds every frame's grids).
 Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate` (points in ascending scene x),
-`observations`, `observed_bits`, frame inputs `grids`, `semantics`; prepared once per scene: `camera_segments` (the cameras' rays); frame outputs
+`observations`, `observation_bits`, frame inputs `grids`, `semantics`; prepared once per scene:
+`camera_segments` (the cameras' rays) and, with free_space_other_frames, `free_bits` (every row's FREE bits,
+so a frame can use the other frames' free space without holding their grids); frame outputs
 `masks` ({"mask_lidar", "mask_camera"}), `final_semantics` (`semantics` with the cleared voxels empty),
 `free_cleared` (number of voxels cleared, background and objects).
 """
@@ -62,11 +64,9 @@ class VisibilityParams:
 
 @dataclass
 class RayObservations:
-    """The FREE grids (`lidar_observation`, `packed_free`) of a scene's loaded output frames, one row per
-    frame: tokens (sweep tokens, scene order); free: uint8 (F, n_bytes) np.packbits of the flat FREE grids."""
+    """The rows of `observation_bits`: tokens (sweep tokens of the loaded output frames, scene order)."""
 
     tokens: list[str]
-    free: np.ndarray
 
     def row(self, token: str) -> int:
         """The row of the frame with sweep token `token` (KeyError when it has none)."""
@@ -78,28 +78,38 @@ class RayObservations:
 def run_rays(inputs: dict, params: VisibilityParams) -> dict:
     scene = inputs["scene"]
     positions = [p for p in scene.output_positions() if scene.sweeps[p].has_cloud] if params.lidar else []
-    n_bytes = (int(np.prod(DEFAULT_GRID.shape)) + 7) // 8
-    free = np.empty((len(positions), n_bytes), dtype=np.uint8)
 
-    def observed_bits():  # one frame at a time, while the cache stores them; fills `free` on the way
-        for row, position in enumerate(positions):
+    def observation_bits():  # one frame at a time, while the cache stores them
+        for position in positions:
             observation = lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
-            free[row] = packed_free(observation)
-            yield np.packbits((observation != UNKNOWN).reshape(-1))
+            yield np.concatenate([np.packbits((observation != UNKNOWN).reshape(-1)), packed_free(observation)])
 
-    return {"observations": RayObservations([scene.sweeps[p].token for p in positions], free),
-            "observed_bits": observed_bits()}
+    return {"observations": RayObservations([scene.sweeps[p].token for p in positions]),
+            "observation_bits": observation_bits()}
+
+
+def split_observation_bits(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(observed bits, FREE bits) of one element of `observation_bits`."""
+    return row[:len(row) // 2], row[len(row) // 2:]
 
 
 def prepare(inputs: dict, params: VisibilityParams) -> dict:
-    """Once per scene: the rays of the scene's cameras (`camera_segments`; None without camera masks), after
+    """Once per scene: the rays of the scene's cameras (`camera_segments`; None without camera masks) and
+    every output frame's FREE bits (`free_bits` (F, n_bytes); None unless free_space_other_frames), after
     checking that the aggregate's points are in ascending scene x (`background_support`)."""
     scene = inputs["scene"]
-    if params.lidar and params.clear_free_space and np.any(np.diff(inputs["background_aggregate"].points[:, 0]) < 0):
+    clearing = params.lidar and params.clear_free_space
+    if clearing and np.any(np.diff(inputs["background_aggregate"].points[:, 0]) < 0):
         raise ValueError("visibility: the background aggregate's points are not in ascending scene x")
+    free_bits = None
+    if clearing and params.free_space_other_frames:
+        free_bits = np.empty((len(inputs["observations"].tokens), (int(np.prod(DEFAULT_GRID.shape)) + 7) // 8), np.uint8)
+        for row in range(len(free_bits)):  # one element read back at a time
+            free_bits[row] = split_observation_bits(inputs["observation_bits"][row])[1]
     use = params.camera and bool(scene.cameras)
     return {"camera_segments": camera_segments(scene.cameras, DEFAULT_GRID, params.camera_max_range_m,
-                                                range_bands=params.camera_range_bands) if use else None}
+                                                range_bands=params.camera_range_bands) if use else None,
+            "free_bits": free_bits}
 
 
 def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
@@ -110,17 +120,18 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     masks, cleared = {}, 0
     if params.lidar:
         observations = inputs["observations"]
-        observed = np.unpackbits(inputs["observed_bits"][observations.row(token)], count=int(np.prod(DEFAULT_GRID.shape)))
+        own_observed, own_free = split_observation_bits(inputs["observation_bits"][observations.row(token)])
+        observed = np.unpackbits(own_observed, count=int(np.prod(DEFAULT_GRID.shape)))
         masks["mask_lidar"] = observed.reshape(DEFAULT_GRID.shape).astype(bool)
         if params.clear_free_space:
-            clear = free_space_clear(position, token, scene, observations, inputs["registration"].poses,
-                                     inputs["background_aggregate"], frame["grids"], semantics, params)
+            clear = free_space_clear(position, token, scene, observations, inputs["free_bits"], own_free,
+                                     inputs["registration"].poses, inputs["background_aggregate"], frame["grids"],
+                                     semantics, params)
             semantics[clear] = 0
             cleared = int(clear.sum())
         if params.clear_object_categories:
             classes = tuple(LABELS.box_category_to_id[c] for c in params.clear_object_categories)
-            crossed = crossed_objects(semantics, classes, frame["grids"].object_points,
-                                      observations.free[observations.row(token)], DEFAULT_GRID)
+            crossed = crossed_objects(semantics, classes, frame["grids"].object_points, own_free, DEFAULT_GRID)
             semantics[crossed] = 0
             cleared += int(crossed.sum())
     if inputs["camera_segments"] is not None:
@@ -137,29 +148,31 @@ def background_support(points_scene: np.ndarray, T_scene_from_ego: np.ndarray) -
     return point_support(points_scene[near], DEFAULT_GRID, invert_transform(T_scene_from_ego))
 
 
-def free_space_clear(position: int, token: str, scene, observations: RayObservations, poses: np.ndarray, background,
-                     grids, semantics: np.ndarray, params: VisibilityParams) -> np.ndarray:
+def free_space_clear(position: int, token: str, scene, observations: RayObservations, free_bits: np.ndarray | None,
+                     own_free: np.ndarray, poses: np.ndarray, background, grids, semantics: np.ndarray,
+                     params: VisibilityParams) -> np.ndarray:
     """bool grid of the frame's background voxels to clear (nuplan_occ.voxel.free_space): crossed by its own
-    rays or, with free_space_other_frames, by another output frame's."""
+    rays (own_free: its FREE bits) or, with free_space_other_frames, by another output frame's (free_bits:
+    every row's)."""
     support = background_support(background.points, invert_transform(background.T_global_from_scene) @ poses[position])
     candidates = clearable_background(grids.occupied_background & (semantics > 0), support, grids.ground_height,
                                       DEFAULT_GRID, params.free_space_ground_margin_m)
     own = observations.row(token)
     if params.free_space_other_frames:
         position_of = {sweep.token: i for i, sweep in enumerate(scene.sweeps)}
-        bits = observations.free
+        bits = free_bits
         transforms = np.stack([np.eye(4) if row == own else invert_transform(poses[position_of[other]]) @ poses[position]
                                for row, other in enumerate(observations.tokens)])
     else:
-        bits, transforms = observations.free[own:own + 1], np.eye(4)[None]
+        bits, transforms = own_free[None], np.eye(4)[None]
     return free_voxels_in_frames(candidates, transforms, bits, DEFAULT_GRID)
 
 
-RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations", "observed_bits"),
-                   item_outputs=("observed_bits",), params_type=VisibilityParams,
+RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations", "observation_bits"),
+                   item_outputs=("observation_bits",), params_type=VisibilityParams,
                    run=run_rays, code=("nuplan_occ.voxel",), doc=__doc__ or "", params_section="visibility")
 
-STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "observations", "observed_bits",
+STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "observations", "observation_bits",
                                "grids", "semantics"),
               outputs=("masks", "final_semantics", "free_cleared"), params_type=VisibilityParams,
               run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "", per_frame=True, prepare=prepare)
