@@ -48,7 +48,9 @@ class VoxelizeParams:
     to such a cluster by gaps of at most mover_fragment_reach_m; a bicycle from mover_bicycle_extent_m unless
     at least mover_static_fraction of its points lie in scene cells of a voxel's size where the output frames
     mover_static_frames before or after it have flagged points too (static structure; a frame without both
-    such neighbours has no evidence of motion: no bicycle); else other. The measurements behind these are in
+    such neighbours has no evidence of motion: no bicycle); else other. A bicycle's columns whose lowest voxel
+    is at most mover_bicycle_ground_fill_m above the ground voxel are its down to the ground (its wheels' low
+    returns are within the dynamic test's ground clearance). The measurements behind these are in
     bench/report-scale.md's notes."""
 
     fill_objects: bool = True
@@ -67,6 +69,7 @@ class VoxelizeParams:
     mover_static_fraction: float = 0.2
     mover_ground_reach_m: float = 0.75
     mover_fragment_reach_m: float = 1.0
+    mover_bicycle_ground_fill_m: float = 0.5
 
 
 def box_lattice_points(size: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -139,7 +142,8 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                               recurring=recurring_points(points, others, DEFAULT_GRID.voxel_size) if others else None,
                               static_fraction=params.mover_static_fraction, ground_height=grids.ground_height,
                               ground_reach_m=params.mover_ground_reach_m,
-                              fragment_reach_m=params.mover_fragment_reach_m)
+                              fragment_reach_m=params.mover_fragment_reach_m,
+                              bicycle_ground_fill_m=params.mover_bicycle_ground_fill_m)
         grids.mover_voxels = paint_empty(grids, movers)
     return {"grids": grids}
 
@@ -155,11 +159,14 @@ def neighbour_movers(frame_movers: dict[int, np.ndarray], position: int, frames:
 
 
 def paint_empty(grids: FrameGrids, movers: MoverVoxels) -> int:
-    """Give the empty voxels among `movers` their class (instance and flow stay 0); returns how many."""
+    """Give the empty voxels among `movers`, and their over_ground voxels that hold background, their class
+    (instance and flow stay 0; a painted voxel is no longer background); returns how many were painted."""
     i, j, k = movers.indices.T
-    empty = grids.semantics[i, j, k] == 0
-    grids.semantics[i[empty], j[empty], k[empty]] = movers.class_ids[empty]
-    return int(empty.sum())
+    paint = (grids.semantics[i, j, k] == 0) | (movers.over_ground & grids.occupied_background[i, j, k])
+    i, j, k = i[paint], j[paint], k[paint]
+    grids.semantics[i, j, k] = movers.class_ids[paint]
+    grids.occupied_background[i, j, k] = False
+    return int(paint.sum())
 
 
 STAGE = Stage("voxelize",

@@ -19,6 +19,10 @@ the other box categories are static. A cluster is
   points recur (`recurring`: their place holds flagged points in another frame) are `other`. The test does
   not serve vehicles: one moving along its length covers the cells it leaves;
 - else `other` (a pedestrian, a car seen from behind, a fragment).
+A bicycle stands on its wheels, whose lowest returns lie within the dynamic test's ground clearance and are
+not flagged: in each column of a bicycle cluster whose lowest voxel is at most `bicycle_ground_fill_m` above
+the column's ground voxel, the voxels from the ground voxel up to it are the bicycle's too (`over_ground`:
+they replace the background there, as an object's voxel outranks the ground it stands on).
 Clusters of fewer than `min_voxels` voxels are LiDAR noise and are not painted. Instance ids and flow stay
 0 (unknown without a track).
 """
@@ -33,21 +37,25 @@ from scipy import ndimage
 from nuplan_occ.fbsa.voxel_reduce import voxel_keys
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
+from nuplan_occ.voxel.ground import ground_height_index
 
 
 @dataclass(frozen=True)
 class MoverVoxels:
-    """indices (K, 3) int64 voxels [x, y, z] of the grid; class_ids (K,) uint8 label id of each."""
+    """indices (K, 3) int64 voxels [x, y, z] of the grid; class_ids (K,) uint8 label id of each; over_ground
+    (K,) bool: the voxel may replace background (a bicycle's wheel columns down to the ground), else it
+    fills an empty voxel only."""
 
     indices: np.ndarray
     class_ids: np.ndarray
+    over_ground: np.ndarray
 
 
 def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxels: int = 2,
                  vehicle_extent_m: float = 2.5, gap_voxels: int = 1, bicycle_extent_m: float = 1.0,
                  recurring: np.ndarray | None = None, static_fraction: float = 0.2,
                  ground_height: np.ndarray | None = None, ground_reach_m: float = 0.75,
-                 fragment_reach_m: float = 1.0) -> MoverVoxels:
+                 fragment_reach_m: float = 1.0, bicycle_ground_fill_m: float = 0.5) -> MoverVoxels:
     """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc).
     recurring: (N,) bool, whether each point's place holds flagged points in the other frames too (None: no
     other frames to tell, so no cluster is known to have moved and none is a bicycle). ground_height: (X, Y)
@@ -57,7 +65,7 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
     recurring = np.ones(len(idx), dtype=bool) if recurring is None else np.asarray(recurring, dtype=bool)
     idx, point_voxel = np.unique(idx[inside], axis=0, return_inverse=True)
     if not len(idx):
-        return MoverVoxels(np.zeros((0, 3), np.int64), np.zeros(0, np.uint8))
+        return MoverVoxels(np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros(0, bool))
     low = idx.min(axis=0) - gap_voxels
     occupied = np.zeros(tuple(idx.max(axis=0) + gap_voxels - low + 1), dtype=bool)
     local = idx - low
@@ -89,7 +97,28 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
     cluster_class = np.select([~grounded, vehicle | fragment, (extent >= bicycle_extent_m) & (share < static_fraction)],
                               [OTHER, VEHICLE, BICYCLE], OTHER).astype(np.uint8)
     keep = sizes[cluster_of] >= min_voxels
-    return MoverVoxels(idx[keep], cluster_class[cluster_of[keep]])
+    idx, class_ids = idx[keep], cluster_class[cluster_of[keep]]
+    wheels = _down_to_ground(idx[class_ids == BICYCLE], grid, ground_height, bicycle_ground_fill_m)
+    return MoverVoxels(np.vstack([idx, wheels]), np.r_[class_ids, np.full(len(wheels), BICYCLE, np.uint8)],
+                       np.r_[np.zeros(len(idx), bool), np.ones(len(wheels), bool)])
+
+
+def _down_to_ground(idx: np.ndarray, grid: GridSpec, ground_height: np.ndarray | None, reach_m: float) -> np.ndarray:
+    """(K, 3) voxels from each column's ground voxel up to (not including) the lowest of the voxels idx
+    (K0, 3) in that column, for the columns whose lowest voxel lies at most reach_m (whole voxels) above
+    their known ground voxel."""
+    if ground_height is None or not len(idx) or reach_m <= 0:
+        return np.zeros((0, 3), np.int64)
+    columns, column_of = np.unique(idx[:, :2], axis=0, return_inverse=True)
+    lowest = np.full(len(columns), grid.shape[2], np.int64)
+    np.minimum.at(lowest, column_of.reshape(-1), idx[:, 2])
+    ground = ground_height_index(ground_height, grid)[columns[:, 0], columns[:, 1]]
+    gap = lowest - ground
+    reach = (ground >= 0) & (gap > 0) & (gap <= int(round(reach_m / grid.voxel_size)))
+    columns, ground, gap = columns[reach], ground[reach], gap[reach]
+    row = np.repeat(np.arange(len(columns)), gap)
+    step = np.arange(len(row)) - np.repeat(np.cumsum(gap) - gap, gap)
+    return np.c_[columns[row], ground[row] + step].astype(np.int64)
 
 
 def _standing(idx: np.ndarray, cluster_of: np.ndarray, count: int, grid: GridSpec, ground_height: np.ndarray | None,

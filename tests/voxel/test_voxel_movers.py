@@ -86,3 +86,38 @@ def test_clusters_are_classed_by_ground_contact_length_and_motion() -> None:
         voxels = np.unique(DEFAULT_GRID.point_to_index(part)[0], axis=0)
         hit = (without.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
         assert set(without.class_ids[hit].tolist()) == {expected}
+
+
+def test_a_bicycle_reaches_down_to_its_ground_and_replaces_the_background_there() -> None:
+    """Ground at z = -0.9 m (voxel layer 8). A cyclist's frame (1.8 m long, 0.1 m wide) seen from 0.3 m above
+    the ground (its wheels' lowest returns were not flagged) and its rider (0.5 m long, 0.7 m wide) from
+    0.9 m up: the frame's columns gain their ground voxel, the rider's columns (1.5 m up) gain nothing. A
+    pedestrian seen from 0.3 m up gains nothing (not a bicycle). Painted into a frame whose ground layer is
+    background, the wheel voxels replace it and stop being background."""
+    from nuplan_occ.voxel.compose import FrameGrids
+    from stages.voxelize import paint_empty
+
+    xs, zs = np.meshgrid(np.arange(11.2, 13.0, 0.1), np.arange(-0.6, 0.3, 0.1))
+    frame = np.column_stack([xs.ravel(), np.full(xs.size, 3.05), zs.ravel()])  # its side, as a sweep sees it
+    rider = _surface_points((12.1, 3.1, 0.4), (0.5, 0.7, 0.8))
+    pedestrian = _surface_points((8.1, -3.1, 0.25), (0.6, 0.6, 1.1))
+    ground = np.full(DEFAULT_GRID.shape[:2], -0.9)
+    points = np.vstack([frame, rider, pedestrian])
+    recurring = np.zeros(len(points), bool)
+    result = mover_voxels(points, DEFAULT_GRID, recurring=recurring, ground_height=ground)
+    wheels = result.indices[result.over_ground]
+    frame_columns = np.unique(DEFAULT_GRID.point_to_index(frame)[0][:, :2], axis=0)
+    assert np.all(result.class_ids[result.over_ground] == BICYCLE) and np.all(wheels[:, 2] == 8)
+    np.testing.assert_array_equal(np.unique(wheels[:, :2], axis=0), frame_columns)
+    none_filled = mover_voxels(points, DEFAULT_GRID, recurring=recurring, ground_height=ground, bicycle_ground_fill_m=0.0)
+    assert not none_filled.over_ground.any() and len(none_filled.indices) == len(result.indices) - len(wheels)
+
+    shape = DEFAULT_GRID.shape
+    semantics = np.zeros(shape, np.uint8)
+    semantics[:, :, 8] = OTHER
+    grids = FrameGrids(semantics, np.zeros(shape, np.uint16), np.zeros((*shape, 3), np.float16), semantics > 0, ground)
+    painted = paint_empty(grids, result)
+    assert painted == len(result.indices)
+    i, j, k = wheels.T
+    assert np.all(grids.semantics[i, j, k] == BICYCLE) and not grids.occupied_background[i, j, k].any()
+    assert grids.occupied_background.sum() == shape[0] * shape[1] - len(wheels)
