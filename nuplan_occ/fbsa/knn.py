@@ -1,11 +1,11 @@
 """k nearest points by a compiled kd-tree: sliding-midpoint splits of the widest side into leaves of at most
 LEAF_SIZE points, then a depth-first search per query, nearer child first, pruned by each node's bounding
 box and by the k-th best distance so far. A cloud's own points are searched one leaf at a time: the
-leaf's queries share a walk pruned by box-to-box distance (`knn_distances`).
+leaf's queries share a walk pruned by box-to-box distance (`knn_distance_chunks`).
 
 Distances are sqrt(dx^2 + dy^2 + dz^2) in the points' frame (metres), each row sorted ascending: the
 same values as scipy's `cKDTree.query` (which of equally distant points a tie picks may differ, the
-distances do not). `knn_distances` gives every point's distances to its k nearest points of the same
+distances do not). `knn_distance_chunks` gives every point's distances to its k nearest points of the same
 cloud (itself included); `KdTree` answers queries of other points, optionally within a bound.
 """
 
@@ -282,7 +282,7 @@ def knn_distance_chunks(points: np.ndarray, k: int, chunk_rows: int = CHUNK_ROWS
     whose queries share one walk of the tree (`_self_search`); only one chunk's distances are held at a time."""
     tree = KdTree(points)
     if not 1 <= k <= tree.n:
-        raise ValueError(f"knn_distances: need 1 <= k <= {tree.n} points, got k = {k}")
+        raise ValueError(f"knn_distance_chunks: need 1 <= k <= {tree.n} points, got k = {k}")
     order, start, end = tree._nodes[:3]
     leaves = _leaves(tree._nodes[3])
     leaf_end = end[leaves]
@@ -293,12 +293,3 @@ def knn_distance_chunks(points: np.ndarray, k: int, chunk_rows: int = CHUNK_ROWS
         chunk = leaves[first:last]
         yield order[start[chunk[0]]:end[chunk[-1]]], _self_search(tree._ordered, *tree._nodes, chunk, k)
         first = last
-
-
-def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
-    """(N, k) ascending distances (m) from each point (N, 3) to its k nearest points, itself included
-    (requires 1 <= k <= N)."""
-    distances = np.empty((len(points), k))
-    for rows, chunk in knn_distance_chunks(points, k):
-        distances[rows] = chunk
-    return distances

@@ -82,9 +82,17 @@ def test_global_rule_and_input_checks():
         remove_statistical_outliers(blob, "range", origin=np.zeros((3, 3)))
 
 
-def test_knn_distances_equal_kd_tree_queries():
-    from nuplan_occ.fbsa.knn import knn_distances
+def knn_distances(points: np.ndarray, k: int, chunk_rows: int = 1 << 18) -> np.ndarray:
+    """(N, k) distances of every point, assembled from `knn_distance_chunks`."""
+    from nuplan_occ.fbsa.knn import knn_distance_chunks
 
+    distances = np.empty((len(points), k))
+    for rows, chunk in knn_distance_chunks(points, k, chunk_rows):
+        distances[rows] = chunk
+    return distances
+
+
+def test_knn_distances_equal_kd_tree_queries():
     rng = np.random.default_rng(5)
     ring = rng.normal(size=(3000, 3)) * [20.0, 20.0, 0.5]
     duplicates = np.repeat(rng.uniform(-1, 1, (50, 3)), 4, axis=0)  # ties and zero distances
@@ -99,7 +107,7 @@ def test_knn_distances_equal_kd_tree_queries():
 
 
 def test_knn_distance_chunks_cover_every_point_once_with_the_whole_clouds_distances():
-    from nuplan_occ.fbsa.knn import knn_distance_chunks, knn_distances
+    from nuplan_occ.fbsa.knn import knn_distance_chunks
 
     rng = np.random.default_rng(6)
     points = np.vstack([rng.normal(size=(5000, 3)) * [30.0, 10.0, 1.0], np.repeat([[1.0, 1.0, 0.0]], 90, axis=0)])
