@@ -32,12 +32,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from nuplan_occ.fbsa.voxel_reduce import voxel_keys
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
 from nuplan_occ.voxel.ground import ground_height_index
+from nuplan_occ.voxel.voxel_clusters import chebyshev_clusters
 
 
 @dataclass(frozen=True)
@@ -66,20 +66,10 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
     idx, point_voxel = np.unique(idx[inside], axis=0, return_inverse=True)
     if not len(idx):
         return MoverVoxels(np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros(0, bool))
-    low = idx.min(axis=0) - gap_voxels
-    occupied = np.zeros(tuple(idx.max(axis=0) + gap_voxels - low + 1), dtype=bool)
-    local = idx - low
-    occupied[tuple(local.T)] = True
-    neighbourhood = np.ones((3, 3, 3), dtype=bool)
-    if gap_voxels:
-        occupied = ndimage.binary_dilation(occupied, neighbourhood, iterations=gap_voxels)
-    clusters, count = ndimage.label(occupied, structure=neighbourhood)
-    cluster_of = clusters[tuple(local.T)] - 1
+    cluster_of, count = chebyshev_clusters(idx, 2 * gap_voxels + 1)
     sizes = np.bincount(cluster_of, minlength=count)
-    own = np.zeros_like(clusters)
-    own[tuple(local.T)] = cluster_of + 1  # each cluster's extent over its own voxels, not the dilation
-    span = np.array([[(box[axis].stop - box[axis].start) * grid.voxel_size for axis in (0, 1)]
-                     for box in ndimage.find_objects(own, max_label=count)])
+    span = (_cluster_max(idx[:, :2], cluster_of, count) + _cluster_max(-idx[:, :2], cluster_of, count) + 1
+            ) * grid.voxel_size  # each cluster's x and y extent over its own voxels
     point_cluster = cluster_of[point_voxel.reshape(-1)]
     share = np.bincount(point_cluster, weights=recurring[inside], minlength=count) / np.maximum(
         np.bincount(point_cluster, minlength=count), 1)
@@ -89,10 +79,9 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
     fragment = np.zeros(count, dtype=bool)
     half_reach = int(round(fragment_reach_m / (2 * grid.voxel_size)))
     if half_reach and vehicle.any():  # clusters whose gaps are at most fragment_reach_m form one group
-        groups, _ = ndimage.label(ndimage.binary_dilation(own > 0, neighbourhood, iterations=half_reach),
-                                  structure=neighbourhood)
+        groups, _ = chebyshev_clusters(idx, 2 * half_reach + 1)
         cluster_group = np.zeros(count, dtype=np.int64)
-        cluster_group[cluster_of] = groups[tuple(local.T)]
+        cluster_group[cluster_of] = groups
         fragment = grounded & np.isin(cluster_group, cluster_group[vehicle])
     cluster_class = np.select([~grounded, vehicle | fragment, (extent >= bicycle_extent_m) & (share < static_fraction)],
                               [OTHER, VEHICLE, BICYCLE], OTHER).astype(np.uint8)
@@ -101,6 +90,13 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
     wheels = _down_to_ground(idx[class_ids == BICYCLE], grid, ground_height, bicycle_ground_fill_m)
     return MoverVoxels(np.vstack([idx, wheels]), np.r_[class_ids, np.full(len(wheels), BICYCLE, np.uint8)],
                        np.r_[np.zeros(len(idx), bool), np.ones(len(wheels), bool)])
+
+
+def _cluster_max(values: np.ndarray, cluster_of: np.ndarray, count: int) -> np.ndarray:
+    """(count, D) the largest of values (K, D) over each cluster's rows."""
+    out = np.full((count, values.shape[1]), np.iinfo(np.int64).min, dtype=np.int64)
+    np.maximum.at(out, cluster_of, values)
+    return out
 
 
 def _down_to_ground(idx: np.ndarray, grid: GridSpec, ground_height: np.ndarray | None, reach_m: float) -> np.ndarray:
