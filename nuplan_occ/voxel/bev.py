@@ -11,6 +11,8 @@ shapely's vectorized predicates (no per-cell Python loop):
   painted width, flat caps), so lines thinner than a cell never vanish and a strip is never narrowed.
 - OTHER_GROUND: every other column (walkways, verges, unmapped ground).
 Line beats road beats other ground.
+Centres are tested one by one only in the 8 x 8-cell blocks an area's boundary comes near; every other block
+lies wholly on its middle's side (same result, ~2x faster per frame on the scale bench's city map).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ DRIVABLE_LAYERS: tuple[str, ...] = (
 )
 LINE_LAYERS: tuple[str, ...] = ("boundaries",)
 STOP_LINE_LAYERS: tuple[str, ...] = ("stop_polygons",)
+BLOCK_CELLS = 8
+"""Side (cells) of the blocks whose centres are classified together when no area boundary comes near."""
 
 
 class BevError(ValueError):
@@ -78,17 +82,41 @@ def _line_cells(lines: shapely.Geometry, gx: np.ndarray, gy: np.ndarray, T_globa
     s = grid.voxel_size
     out = np.zeros(gx.shape, dtype=bool)
     reach = shapely.buffer(lines, width_m / 2.0 + s * np.sqrt(0.5) + 1e-6)  # centres of cells that may overlap
-    shapely.prepare(reach)
-    near = np.argwhere(shapely.intersects_xy(reach, gx, gy))
+    near = np.argwhere(_covers_centres(reach, gx, gy))
     if len(near):
+        painted = shapely.buffer(lines, width_m / 2.0, cap_style="flat") if width_m > 0 else lines
+        shapely.prepare(painted)
+        centre_in = shapely.intersects_xy(painted, gx[near[:, 0], near[:, 1]], gy[near[:, 0], near[:, 1]])
+        out[near[centre_in, 0], near[centre_in, 1]] = True  # a square overlaps a strip holding its centre
+        near = near[~centre_in]
         T = np.asarray(T_global_from_ego, dtype=np.float64)
         lo = np.array([grid.x_min, grid.y_min]) + near * s
         square = np.array([[0, 0], [s, 0], [s, s], [0, s]])
         corners = (lo[:, None, :] + square[None]) @ T[:2, :2].T + T[:2, 3]
-        cells = shapely.polygons(corners)
-        painted = shapely.buffer(lines, width_m / 2.0, cap_style="flat") if width_m > 0 else lines
-        shapely.prepare(painted)
-        out[near[:, 0], near[:, 1]] = shapely.intersects(cells, painted)
+        out[near[:, 0], near[:, 1]] = shapely.intersects(shapely.polygons(corners), painted)
+    return out
+
+
+def _covers_centres(area: shapely.Geometry, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """(X, Y) bool: shapely.intersects_xy(area, gx, gy) for the cell centres gx, gy (X, Y) of a regular grid,
+    tested point by point only in the blocks of BLOCK_CELLS x BLOCK_CELLS cells that area's boundary comes
+    near: every centre of a block farther than its centres' reach from the boundary is on the same side as
+    the block's middle (the segment between them does not cross the boundary)."""
+    nx, ny = gx.shape
+    b = BLOCK_CELLS
+    if nx % b or ny % b:
+        return shapely.intersects_xy(area, gx, gy)
+    shapely.prepare(area)
+    bx, by = (gx.reshape(nx // b, b, ny // b, b), gy.reshape(nx // b, b, ny // b, b))
+    mid_x = (bx[:, 0, :, 0] + bx[:, -1, :, -1]) / 2.0  # the grid is regular: its opposite corners' middle
+    mid_y = (by[:, 0, :, 0] + by[:, -1, :, -1]) / 2.0
+    reach = np.hypot(bx[0, :, 0, :] - mid_x[0, 0], by[0, :, 0, :] - mid_y[0, 0]).max() + 1e-6
+    border = shapely.boundary(area)
+    shapely.prepare(border)
+    mixed = shapely.dwithin(border, shapely.points(mid_x, mid_y), reach)
+    out = np.repeat(np.repeat(shapely.intersects_xy(area, mid_x, mid_y), b, axis=0), b, axis=1)
+    cells = np.repeat(np.repeat(mixed, b, axis=0), b, axis=1)
+    out[cells] = shapely.intersects_xy(area, gx[cells], gy[cells])
     return out
 
 
@@ -108,9 +136,7 @@ def rasterize_bev(layers: dict[str, MapLayer], T_global_from_ego: np.ndarray, gr
     area = _footprint(T_global_from_ego, grid, margin_m=max(line_width_m, grid.voxel_size))
     drivable = _geometries_near(layers, DRIVABLE_LAYERS, area)
     if len(drivable):
-        union = shapely.union_all(shapely.make_valid(drivable))
-        shapely.prepare(union)
-        bev[shapely.intersects_xy(union, gx, gy)] = ROAD
+        bev[_covers_centres(shapely.union_all(shapely.make_valid(drivable)), gx, gy)] = ROAD
     if stop_lines is None:
         stop_geoms = shapely.boundary(_geometries_near(layers, STOP_LINE_LAYERS, area))
     else:

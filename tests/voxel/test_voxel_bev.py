@@ -62,3 +62,26 @@ def test_given_stop_lines_replace_the_stop_polygon_outlines():
     assert not (none == ROAD_LINE).any()
     outline = rasterize_bev(layers, T_GLOBAL_FROM_EGO, GRID)
     assert outline[cell(4.9, 2.5)] == ROAD_LINE and outline[cell(3.1, 2.5)] == ROAD_LINE
+
+
+def test_blockwise_classification_equals_cell_by_cell_reference():
+    """Road and line cells equal the per-cell definition (centre in the road; square overlapping the strip),
+    also for a road with a hole, a sliver thinner than a cell and lines crossing blocks at every angle."""
+    rng = np.random.default_rng(3)
+    ring = shapely.Polygon(to_global([[-8, -8], [8, -8], [8, 8], [-8, 8]]),
+                           [to_global([[-3, -2], [4, -3], [2, 5], [-4, 3]])])
+    sliver = shapely.Polygon(to_global([[-9.9, 9.0], [9.9, 9.1], [9.9, 9.15], [-9.9, 9.05]]))
+    lines = [shapely.LineString(to_global(rng.uniform(-12, 12, size=(4, 2)))) for _ in range(6)]
+    layers = {"road_segments": MapLayer(np.array([ring, sliver], dtype=object)),
+              "boundaries": MapLayer(np.array(lines, dtype=object))}
+    bev = rasterize_bev(layers, T_GLOBAL_FROM_EGO, GRID, line_width_m=0.15)
+    s = GRID.voxel_size
+    centres = np.stack(np.meshgrid(GRID.x_min + (np.arange(80) + 0.5) * s, GRID.y_min + (np.arange(80) + 0.5) * s,
+                                   indexing="ij"), axis=-1)
+    road = shapely.intersects_xy(shapely.union_all([ring, sliver]), *to_global(centres.reshape(-1, 2)).T)
+    squares = shapely.polygons(to_global((centres.reshape(-1, 1, 2) + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+                                          * s / 2).reshape(-1, 2)).reshape(-1, 4, 2))
+    painted = shapely.intersects(squares, shapely.buffer(shapely.union_all(lines), 0.075, cap_style="flat"))
+    expected = np.where(painted, ROAD_LINE, np.where(road, ROAD, OTHER_GROUND)).reshape(80, 80)
+    assert 0 < (expected == ROAD_LINE).sum() and 0 < (expected == ROAD).sum() and 0 < (expected == OTHER_GROUND).sum()
+    assert np.array_equal(bev, expected)
