@@ -1,5 +1,6 @@
-"""Stage 8, label (a scene step, then a frame stage): background voxels of the ground layer (within a tolerance of the locally estimated
-ground height) take the BEV map class at that column — drivable -> road, painted lines -> road_line,
+"""Stage 8, label (a scene step, then a frame stage): background voxels of the ground layer (within a
+tolerance of the ground height voxelize estimated for the frame, `FrameGrids.ground_height`: the ground its
+box removal kept) take the BEV map class at that column — drivable -> road, painted lines -> road_line,
 other ground -> other_ground; background above the ground layer stays `other`; objects keep their
 box class. The BEV map is rasterized from the GPKG vector layers in each frame's (refined) ego frame,
 corrected by the scene's map alignment: a 2D rigid transform that moves the scene's bright ground returns
@@ -94,7 +95,7 @@ def run(inputs: dict, frame: dict, params: LabelParams) -> dict:
         bev = rasterize_bev(layers, correction @ inputs["registration"].poses[frame["position"]], DEFAULT_GRID,
                             line_width_m=params.line_width_m, stop_lines=inputs["stop_lines"])
         background = label_background(grid.occupied_background, bev, DEFAULT_GRID,
-                                      ground_tolerance_m=params.ground_tolerance_m)
+                                      ground_tolerance_m=params.ground_tolerance_m, ground_height=grid.ground_height)
         replace = grid.occupied_background & (labeled == OTHER)
         labeled[replace] = background[replace]
     return {"semantics": labeled}
