@@ -131,7 +131,7 @@ def _kth_best(best: np.ndarray, have: int, k: int) -> float:
 
 
 @numba.njit(cache=True)
-def _search(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
+def search_nearest(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
             lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
             ) -> tuple[np.ndarray, np.ndarray]:
     """(distances (Q, k), indices (Q, k)): the k nearest points closer than sqrt(bound2) to each query,
@@ -262,12 +262,18 @@ class KdTree:
         self._nodes = _build(self.data, LEAF_SIZE)
         self._ordered = self.data[self._nodes[0]]
 
+    @property
+    def kernel_arrays(self) -> tuple[np.ndarray, ...]:
+        """(ordered, order, start, end, child, lo, hi): the tree as `search_nearest` takes it, for compiled
+        callers."""
+        return (self._ordered, *self._nodes)
+
     def query(self, queries: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf
               ) -> tuple[np.ndarray, np.ndarray]:
         """(distances (Q, k), indices (Q, k)): ascending distances to the k nearest points closer than
         distance_upper_bound to each of queries (Q, 3), and their indices; inf and n where fewer are."""
         pts = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
-        return _search(self._ordered, *self._nodes, pts, np.arange(len(pts)), int(k), float(distance_upper_bound) ** 2)
+        return search_nearest(*self.kernel_arrays, pts, np.arange(len(pts)), int(k), float(distance_upper_bound) ** 2)
 
 
 CHUNK_ROWS = 1 << 18

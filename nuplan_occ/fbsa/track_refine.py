@@ -12,7 +12,7 @@ Frames: "box" = the frame's (logged) box frame (origin at the box centre, x alon
 maps box-frame points of its frame into the model frame: p_model = Rz(dyaw) p_box + (dx, dy, dz).
 The corrections' gauge (the model frame itself) is fixed by giving them zero weighted mean, so the model
 sits where the boxes put it on average (box noise is unbiased; its mean is the best anchor there is).
-Units: metres, radians. Pure numpy/scipy; deterministic.
+Units: metres, radians. numpy, and compiled kernels for the ICP (`track_icp`); deterministic.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.aggregate import voxel_first_indices
 from nuplan_occ.fbsa.knn import KdTree
 from nuplan_occ.fbsa.plane_normals import pca_normals
+from nuplan_occ.fbsa.track_icp import icp_4dof
 from nuplan_occ.geometry import wrap_angle, yaw_matrix
 
 
@@ -119,36 +120,11 @@ def register_frame(points_box: np.ndarray, frame_id: int, model: TrackModel, sta
                    params: TrackRefineParams) -> np.ndarray:
     """Correction (4,) of one frame: 4-DoF point-to-plane ICP of its box-frame points to the model's points
     of OTHER frames, Huber-weighted, with a Gaussian prior pulling the correction toward zero."""
-    c = np.asarray(start, dtype=np.float64).copy()
-    prior = np.diag([1.0 / params.prior_translation_m ** 2] * 3 + [1.0 / np.radians(params.prior_yaw_deg) ** 2])
-    k = min(params.exclude_neighbors, len(model.points))
-    for _ in range(params.icp_iterations):
-        moved = apply_correction(points_box, c)
-        dist, idx = model.tree.query(moved, k=k, distance_upper_bound=params.max_distance_m)
-        dist, idx = np.asarray(dist).reshape(len(moved), k), np.asarray(idx).reshape(len(moved), k)
-        valid = np.isfinite(dist)
-        valid[valid] &= model.frame_ids[idx[valid]] != frame_id
-        has = valid.any(axis=1)
-        if has.sum() < params.min_points:
-            break
-        first = np.argmax(valid, axis=1)[has]
-        nearest = idx[has, first]
-        # Target: the mean of the valid neighbours (the middle of a blurred model surface, not its near side).
-        v = valid[has]
-        neighbours = model.points[np.where(v, idx[has], 0)]
-        q = (neighbours * v[:, :, None]).sum(axis=1) / v.sum(axis=1)[:, None]
-        p, n = moved[has], model.normals[nearest]
-        r = np.einsum("ij,ij->i", n, p - q)
-        J = np.column_stack([n, n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]])
-        w = np.minimum(1.0, params.huber_m / np.maximum(np.abs(r), 1e-12)) / params.huber_m ** 2
-        H = (J * w[:, None]).T @ J + prior
-        g = (J * w[:, None]).T @ r + prior @ c
-        step = -np.linalg.solve(H, g)
-        # Compose the increment (applied after the current correction) with it.
-        c = np.concatenate([yaw_matrix(step[3]) @ c[:3] + step[:3], [c[3] + step[3]]])
-        if np.abs(step[:3]).max() < 1e-4 and abs(step[3]) < 1e-5:
-            break
-    return c
+    prior = np.array([1.0 / params.prior_translation_m ** 2] * 3 + [1.0 / np.radians(params.prior_yaw_deg) ** 2])
+    return icp_4dof(np.ascontiguousarray(points_box, dtype=np.float64), int(frame_id), model.points, model.normals,
+                    model.frame_ids, model.tree.kernel_arrays, np.asarray(start, dtype=np.float64),
+                    prior, min(params.exclude_neighbors, len(model.points)), params.icp_iterations,
+                    params.max_distance_m, params.huber_m, params.min_points)
 
 
 def fix_gauge(corrections: np.ndarray, weights: np.ndarray) -> np.ndarray:
