@@ -3,9 +3,10 @@
 A segment from a to b (ego metres) is o + t d, t in [0, 1], in voxel units (o = (a - lower) / voxel_size,
 d = (b - lower) / voxel_size - o); it is clipped to the grid box [0, shape] to t in [t0, t1). The voxels
 it passes through are its entries: the voxel at its clipped start (entered at t0) and, for every lattice
-plane k of an axis it crosses with t = (k - o) / d < t1, the voxel it enters there. An entry's voxel is
-the one holding o + (t + nudge) d, nudge = NUDGE_VOXELS / |d| (a hair after the crossing), evaluated
-per axis in floating point; entries whose voxel lies outside the grid are dropped. Slivers shorter than
+plane k of an axis it crosses with t = (k - o) * (1 / d) < t1 (the reciprocal taken once per segment and
+axis), the voxel it enters there. An entry's voxel is the one holding o + (t + nudge) d, nudge =
+NUDGE_VOXELS / |d| (a hair after the crossing, far more than the reciprocal's rounding), evaluated per axis
+in floating point; entries whose voxel lies outside the grid are dropped. Slivers shorter than
 NUDGE_VOXELS (two planes crossed within the nudge) are therefore skipped; where a segment crosses two
 planes at exactly the same t (through a lattice edge) both entries give the diagonal voxel, never a
 corner neighbour.
@@ -91,12 +92,12 @@ def _voxel(ox, oy, oz, dx, dy, dz, t, inv, fx, fy, fz, ny, nz):
 
 
 @numba.njit(cache=True, inline="always")
-def _walk(oa, da, k0, dk, n, i0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base):
-    """Record crossings i0 .. i0 + WALK_PAD - 1 (plane k0 + i dk of the axis o_a + t d_a) at
+def _walk(oa, rda, k0, dk, n, i0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base):
+    """Record crossings i0 .. i0 + WALK_PAD - 1 (plane k0 + i dk of the axis o_a + t d_a; rda = 1 / d_a) at
     walk_t[base + i], walk_v[base + i]: (t, entered voxel), voxel -1 past the n planes, outside the grid or
     where t >= t1. Branch-free, so it vectorizes."""
     for i in range(i0, i0 + WALK_PAD):
-        t = ((k0 + i * dk) - oa) / da
+        t = ((k0 + i * dk) - oa) * rda
         step = t + inv
         x, y, z = ox + step * dx, oy + step * dy, oz + step * dz
         inside = (i < n) & (t < t1) & (x >= 0.0) & (x < fx) & (y >= 0.0) & (y < fy) & (z >= 0.0) & (z < fz)
@@ -122,8 +123,9 @@ def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
         for a in range(3):
             oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
             k0, dk, n = _planes(oa, da, t0, t1, shape[a])
+            rda = 1.0 / da if n else 0.0
             for i0 in range(0, n, WALK_PAD):
-                _walk(oa, da, k0 + i0 * dk, dk, n - i0, 0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz,
+                _walk(oa, rda, k0 + i0 * dk, dk, n - i0, 0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz,
                       walk_t, walk_v, 0)
                 for m in range(WALK_PAD):
                     if walk_v[m] >= 0:
@@ -167,10 +169,11 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
             a = (a0 + j) % 3
             oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
             k0, dk, n = _planes(oa, da, t0, t1, shape[a])
+            rda = 1.0 / da if n else 0.0
             base = a * size
             m, stop = 0, False
             while m < n and not stop:
-                _walk(oa, da, k0, dk, n, m, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base)
+                _walk(oa, rda, k0, dk, n, m, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base)
                 end = min(m + WALK_PAD, n)
                 while m < end:
                     t, v = walk_t[base + m], walk_v[base + m]
