@@ -26,6 +26,8 @@ from io import BytesIO
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from nuplan_occ import __version__
 from nuplan_occ.bench import BENCH_SEED, _table, bench_quality
 from nuplan_occ.bench_scale_plot import plot_stage_history, stage_history
@@ -166,9 +168,28 @@ def code_label(repo: Path) -> str:
     return (head.stdout.strip() or "unknown") + ("+changes" if dirty else "")
 
 
+def median_build(builds: list[dict[str, Any]]) -> dict[str, Any]:
+    """One row from repeated timed builds of the same code on the same input: the median of every cost
+    figure (CPU, stage and wall seconds, per stage too, and peak RSS), each build's CPU s/frame in
+    `cpu_seconds_per_frame_builds`; ok only when every build was. Byte counts and frame counts are the
+    first build's (builds are deterministic)."""
+    row = dict(builds[0])
+    for key in ("cpu_seconds_per_frame", "seconds_per_frame", "wall_seconds_per_frame", "wall_seconds", "peak_rss_mb"):
+        row[key] = float(np.median([b[key] for b in builds]))
+    for key in ("stage_cpu_seconds_per_frame", "stage_seconds_per_frame", "stage_peak_rss_mb"):
+        stages = {s for b in builds for s in b[key]}
+        row[key] = {s: float(np.median([b[key][s] for b in builds if s in b[key]])) for s in stages}
+    row["ok"] = all(b["ok"] for b in builds)
+    row["killed"] = next((b["killed"] for b in builds if b["killed"]), "")
+    row["cpu_seconds_per_frame_builds"] = [b["cpu_seconds_per_frame"] for b in builds]
+    return row
+
+
 def run_scale_bench(out_dir: Path, seconds: list[float], baseline: str | None, limit_mb: float,
-                    quality_stride: int, baseline_max_seconds: float) -> dict[str, Any]:
-    """Every scene length built by this code (and by `baseline` up to baseline_max_seconds); the report.
+                    quality_stride: int, baseline_max_seconds: float, repeats: int = 1) -> dict[str, Any]:
+    """Every scene length built by this code (and by `baseline` up to baseline_max_seconds) `repeats` times,
+    the codes' builds interleaved (this, baseline, this, ...) so that a machine whose speed drifts slows both
+    alike; each row is their `median_build`, the quality that of this code's last build. Returns the report.
     Rows of other code versions already in bench/report-scale.json are kept (each row has its date), and so
     are its notes and its KISS-ICP measurement (a run that skips it keeps the last one)."""
     cache = out_dir.resolve() / "scale"  # absolute: the baseline's builds run from its exported source
@@ -187,14 +208,17 @@ def run_scale_bench(out_dir: Path, seconds: list[float], baseline: str | None, l
         builds = [(this, here)]
         if baseline and length <= baseline_max_seconds:
             builds.append((baseline, export_revision(baseline, cache / "src")))
-        for name, source in builds:
-            print(f"bench-scale: {length:g} s scene, code {name} ...", flush=True)
-            out = cache / f"build_{length:g}s_{name}"
-            row = {"seconds": length, "code": name, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                   **timed_build(data_root, out, source, limit_mb)}
+        date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+        timed: dict[str, list[dict[str, Any]]] = {name: [] for name, _ in builds}
+        for repeat in range(repeats):
+            for name, source in builds:
+                print(f"bench-scale: {length:g} s scene, code {name}, build {repeat + 1} of {repeats} ...", flush=True)
+                timed[name].append(timed_build(data_root, cache / f"build_{length:g}s_{name}", source, limit_mb))
+        for name, _ in builds:
+            row = {"seconds": length, "code": name, "date": date, **median_build(timed[name])}
             report["runs"] = [r for r in report["runs"] if (r["seconds"], r["code"]) != (length, name)]
             if row["ok"] and name == this:
-                row["quality"] = bench_quality(data_root, out, frame_stride=quality_stride)
+                row["quality"] = bench_quality(data_root, cache / f"build_{length:g}s_{name}", frame_stride=quality_stride)
             report["runs"].append(row)
             write_scale_report(report, out_dir)
     return report
@@ -204,7 +228,6 @@ def bench_kiss_icp(data_root: Path, sweeps: int, threads: tuple[int, ...] = (1, 
     """KISS-ICP odometry (the declared dependency) on the first `sweeps` merged sweeps of the scale log, ego
     frame, voxel 1 m: seconds per sweep and whether two runs give bit-identical poses, per thread count
     (0 = all cores); plus the drift of its trajectory from the logged poses (m, over the run)."""
-    import numpy as np
     from kiss_icp.config import KISSConfig
     from kiss_icp.kiss_icp import KissICP
 
@@ -258,6 +281,13 @@ def write_scale_report(report: dict, out_dir: Path) -> None:
     (out_dir / "report-scale.md").write_text(render_scale_markdown(report, picture=bool(history.labels)))
 
 
+def _build_note(row: dict) -> str:
+    """The cost table's note: why a build was killed, and each build's CPU s/frame when a row is a median."""
+    builds = row.get("cpu_seconds_per_frame_builds", [])
+    spread = f"median of {len(builds)} interleaved builds: " + " / ".join(f"{b:.3f}" for b in builds) if len(builds) > 1 else ""
+    return "; ".join(part for part in (row["killed"], spread) if part)
+
+
 def render_scale_markdown(report: dict, picture: bool = False) -> str:
     """The scale report as Markdown tables; with `picture`, led by bench/report-scale.png."""
     runs = report["runs"]
@@ -275,7 +305,7 @@ def render_scale_markdown(report: dict, picture: bool = False) -> str:
                     [[r["seconds"], r["code"], r["date"], r["frames_built"], r["frames_failed"],
                       r.get("cpu_seconds_per_frame", float("nan")), r["seconds_per_frame"],
                       r["wall_seconds_per_frame"], r["peak_rss_mb"], r["work_bytes_per_frame"],
-                      r["dataset_bytes_per_frame"], r["killed"]] for r in runs]), "",
+                      r["dataset_bytes_per_frame"], _build_note(r)] for r in runs]), "",
              "## CPU seconds per output frame, per stage (one thread)", "",
              _table(["scene s", "code", *stages], [[r["seconds"], r["code"], *[r.get("stage_cpu_seconds_per_frame", {}).get(s, "")
                                                      for s in stages]] for r in runs]), "",
@@ -354,11 +384,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--limit-mb", type=float, default=10_000.0, help="kill a build whose RSS passes this")
     parser.add_argument("--quality-stride", type=int, default=2, help="measure quality on every n-th frame")
     parser.add_argument("--kiss-sweeps", type=int, default=60, help="sweeps of the KISS-ICP measurement (0 = skip)")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="builds per code and scene, interleaved with the baseline's; rows give their medians")
     args = parser.parse_args(argv)
     if args.kiss_sweeps:
         kiss = bench_kiss_icp(scale_data(args.out / "scale", 5.0), args.kiss_sweeps)
     report = run_scale_bench(args.out, args.seconds, args.baseline, args.limit_mb, args.quality_stride,
-                             args.baseline_max_seconds)
+                             args.baseline_max_seconds, args.repeats)
     report["recorded_baseline"] = RECORDED_BASELINE
     if args.kiss_sweeps:
         report["kiss_icp"] = kiss
