@@ -29,7 +29,7 @@ from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.free_space import (
-    clearable_background, crossed_objects, free_voxels_in_frames, packed_free, point_support,
+    clearable_background, crossed_objects, free_voxels_in_frames, grid_window, packed_free, point_support,
 )
 from nuplan_occ.voxel.visibility import UNKNOWN, camera_segments, lidar_observation, visible_along
 
@@ -141,10 +141,10 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
 
 def background_support(points_scene: np.ndarray, T_scene_from_ego: np.ndarray) -> np.ndarray:
     """`point_support` in the frame's grid of the aggregate's points (M, 3), scene frame, m, in ascending scene
-    x: only the slice within the grid's reach of the ego (x of T_scene_from_ego) is moved into the grid."""
+    x: only the slice within the x range of the grid's `grid_window` in the scene frame is looked at."""
     xs = points_scene[:, 0]
-    ego_x = T_scene_from_ego[0, 3]
-    near = slice(np.searchsorted(xs, ego_x - DEFAULT_GRID.reach), np.searchsorted(xs, ego_x + DEFAULT_GRID.reach, "right"))
+    window_lo, window_hi = grid_window(T_scene_from_ego, DEFAULT_GRID)
+    near = slice(np.searchsorted(xs, window_lo[0]), np.searchsorted(xs, window_hi[0], "right"))
     return point_support(points_scene[near], DEFAULT_GRID, invert_transform(T_scene_from_ego))
 
 

@@ -27,9 +27,15 @@ def moved_voxel(p, T, lower, voxel_size, shape):
 
 
 @numba.njit(cache=True)
-def mark_points(points, T, lower, voxel_size, shape, out):
-    """out[v] = True for the voxel v holding T p of every point p of points (N, 3); out: flat bool grid."""
+def mark_points(points, T, lower, voxel_size, shape, window_lo, window_hi, out):
+    """out[v] = True for the voxel v holding T p of every point p of points (N, 3) inside the axis-aligned
+    window [window_lo, window_hi] (3,) of their own frame (m); out: flat bool grid. The window must hold the
+    grid's box moved there: the points outside it, which cannot land in the grid, are skipped unmoved."""
     for n in range(points.shape[0]):
+        x, y, z = points[n, 0], points[n, 1], points[n, 2]
+        if (x < window_lo[0] or x > window_hi[0] or y < window_lo[1] or y > window_hi[1]
+                or z < window_lo[2] or z > window_hi[2]):
+            continue
         v = moved_voxel(points[n], T, lower, voxel_size, shape)
         if v >= 0:
             out[v] = True

@@ -19,19 +19,34 @@ from __future__ import annotations
 
 import numpy as np
 
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec, true_indices
 from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
 from nuplan_occ.voxel.traversal import grid_args
 from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN
 
 
+WINDOW_SLACK_M = 1e-6
+"""Growth (m) of `grid_window`: covers the rounding of moving the grid's corners."""
+
+
+def grid_window(T_points_from_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """(lower (3,), upper (3,)) m: the axis-aligned box, in the points' frame, holding the grid's box moved
+    there by T_points_from_ego (4x4), grown by WINDOW_SLACK_M; no point outside it lies in the grid."""
+    corners = np.array([[x, y, z] for x in (grid.x_min, grid.x_max) for y in (grid.y_min, grid.y_max)
+                        for z in (grid.z_min, grid.z_max)], dtype=np.float64)
+    moved = corners @ np.asarray(T_points_from_ego, dtype=np.float64)[:3, :3].T + T_points_from_ego[:3, 3]
+    return moved.min(axis=0) - WINDOW_SLACK_M, moved.max(axis=0) + WINDOW_SLACK_M
+
+
 def point_support(points: np.ndarray, grid: GridSpec = DEFAULT_GRID,
                   T_ego_from_points: np.ndarray | None = None) -> np.ndarray:
     """bool (X, Y, Z): voxels holding at least one of points (N, 3, m), in the ego frame or moved into it by
-    T_ego_from_points (4x4)."""
+    T_ego_from_points (4x4). Points outside the grid's `grid_window` are skipped unmoved."""
     T = np.eye(4) if T_ego_from_points is None else np.asarray(T_ego_from_points, dtype=np.float64)
     support = np.zeros(int(np.prod(grid.shape)), dtype=bool)
-    mark_points(np.ascontiguousarray(points, dtype=np.float64), T, *grid_args(grid), support)
+    window_lo, window_hi = grid_window(invert_transform(T), grid)
+    mark_points(np.ascontiguousarray(points, dtype=np.float64), T, *grid_args(grid), window_lo, window_hi, support)
     return support.reshape(grid.shape)
 
 

@@ -43,10 +43,10 @@ def reference_entries(starts, ends, grid, t_from=None):
     inv_len = 1e-6 / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
     ray_ids, ts = [np.arange(len(o))], [t0]
     for axis in range(3):
-        for r in range(len(o)):
+        for r in np.flatnonzero(count[:, axis]):  # the reciprocal taken once per segment and axis, as documented
             k = first[r, axis] + np.arange(count[r, axis])
             ray_ids.append(np.full(len(k), r))
-            ts.append((k - o[r, axis]) / d[r, axis])
+            ts.append((k - o[r, axis]) * (1.0 / d[r, axis]))
     ids, t = np.concatenate(ray_ids), np.concatenate(ts)
     keep = t < t1[ids]
     keep[: len(o)] = True
