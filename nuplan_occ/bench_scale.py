@@ -209,16 +209,17 @@ def run_scale_bench(out_dir: Path, seconds: list[float], baseline: str | None, l
         if baseline and length <= baseline_max_seconds:
             builds.append((baseline, export_revision(baseline, cache / "src")))
         date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+        out = {name: cache / f"build_{length:g}s_{name}" for name, _ in builds}
         timed: dict[str, list[dict[str, Any]]] = {name: [] for name, _ in builds}
         for repeat in range(repeats):
             for name, source in builds:
                 print(f"bench-scale: {length:g} s scene, code {name}, build {repeat + 1} of {repeats} ...", flush=True)
-                timed[name].append(timed_build(data_root, cache / f"build_{length:g}s_{name}", source, limit_mb))
+                timed[name].append(timed_build(data_root, out[name], source, limit_mb))
         for name, _ in builds:
             row = {"seconds": length, "code": name, "date": date, **median_build(timed[name])}
             report["runs"] = [r for r in report["runs"] if (r["seconds"], r["code"]) != (length, name)]
             if row["ok"] and name == this:
-                row["quality"] = bench_quality(data_root, cache / f"build_{length:g}s_{name}", frame_stride=quality_stride)
+                row["quality"] = bench_quality(data_root, out[name], frame_stride=quality_stride)
             report["runs"].append(row)
             write_scale_report(report, out_dir)
     return report

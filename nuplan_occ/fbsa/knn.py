@@ -132,8 +132,8 @@ def _kth_best(best: np.ndarray, have: int, k: int) -> float:
 
 @numba.njit(cache=True)
 def search_nearest(ordered: np.ndarray, order: np.ndarray, start: np.ndarray, end: np.ndarray, child: np.ndarray,
-            lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
-            ) -> tuple[np.ndarray, np.ndarray]:
+                   lo: np.ndarray, hi: np.ndarray, queries: np.ndarray, query_order: np.ndarray, k: int, bound2: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """(distances (Q, k), indices (Q, k)): the k nearest points closer than sqrt(bound2) to each query,
     ascending; inf and index len(points) where fewer lie that close. ordered = points[order] (leaves are
     contiguous slices of it); queries are searched in query_order."""

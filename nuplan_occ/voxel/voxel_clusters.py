@@ -44,6 +44,15 @@ def _join_within(local: np.ndarray, slot: np.ndarray, reach: int, parent: np.nda
                             parent[max(a, b)] = min(a, b)
 
 
+@numba.njit(cache=True)
+def _roots(parent: np.ndarray) -> np.ndarray:
+    """(K,) the root of every element of the union-find forest `parent` (the smallest index of its set)."""
+    out = np.empty(len(parent), dtype=np.int64)
+    for i in range(len(parent)):
+        out[i] = _root(parent, i)
+    return out
+
+
 def chebyshev_clusters(indices: np.ndarray, reach: int) -> tuple[np.ndarray, int]:
     """(labels (K,) int64 in [0, count), count) for the distinct voxels indices (K, 3) int: voxels at most
     reach voxels apart along every axis share a label, transitively. Labels are numbered in the order of
@@ -58,11 +67,3 @@ def chebyshev_clusters(indices: np.ndarray, reach: int) -> tuple[np.ndarray, int
     _join_within(local, slot, int(reach), parent)
     first, labels = np.unique(_roots(parent), return_inverse=True)
     return labels.reshape(-1).astype(np.int64), len(first)
-
-
-@numba.njit(cache=True)
-def _roots(parent: np.ndarray) -> np.ndarray:
-    out = np.empty(len(parent), dtype=np.int64)
-    for i in range(len(parent)):
-        out[i] = _root(parent, i)
-    return out
