@@ -133,13 +133,14 @@ def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
 
 
 @numba.njit(cache=True)
-def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, resume_t, resume, visible,
-                              reached):
-    """visible[v] = True for the entries v of each segment starts -> ends ((N, 3) m) with t <= t_hit, its
-    first blocking entry's t (the least t >= t_block of an entry whose voxel is occupied; all entries when
-    none blocks). resume[r] says which part of segment r is walked: 0 none, 1 from t = resume_t on (the part
-    before stands for one that other rays walked), 2 all of it. reached[r] = True when segment r ends (t = 1)
-    inside the grid with no blocking entry.
+def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, from_t, visible, reached,
+                              stop_t):
+    """visible[v] = True for the entries v of each segment starts -> ends ((N, 3) m) with from_t[r] <= t <= t_hit,
+    its first blocking entry's t (the least t >= t_block of an entry whose voxel is occupied; all entries when
+    none blocks). Segment r is walked from t = from_t[r] on (the part before stands for one that other rays
+    walked), and not at all where from_t[r] is inf. For a walked segment, reached[r] = True when it ends
+    (t = 1) inside the grid with no blocking entry, and stop_t[r] is where its walk ended: t_hit, or where it
+    leaves the grid or ends (within [0, 1]; 0 for one missing the grid); a segment not walked gets reached[r] = False and keeps its stop_t.
     occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
 
     Per segment, each axis' crossings are recorded WALK_PAD at a time and scanned in order of t until the
@@ -151,11 +152,11 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
     walk_t, walk_v = np.empty(3 * size), np.empty(3 * size, np.int64)
     for r in range(starts.shape[0]):
         reached[r] = False
-        if resume[r] == 0:
+        if from_t[r] == np.inf:
             continue
         meets, ox, oy, oz, dx, dy, dz, t0, t1, inv = _segment(starts, ends, r, lower, voxel_size, shape)
-        if resume[r] == 1:
-            t0 = max(t0, resume_t)
+        t0 = max(t0, from_t[r])
+        stop_t[r] = min(max(t1, 0.0), 1.0) if meets else 0.0
         if not meets or t0 >= t1:
             continue
         t_hit = np.inf
@@ -191,6 +192,7 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
             else:
                 walked_z = m
         reached[r] = t_hit == np.inf and t1 >= 1.0
+        stop_t[r] = min(t_hit, stop_t[r])
         if v_start >= 0 and t0 <= t_hit:
             visible[v_start] = True
         for a in range(3):

@@ -17,8 +17,10 @@ step voxel_size / (its far end), so adjacent rays are at most one voxel apart an
 (the nearest band's rays are 4**(range_bands - 1) times fewer than a max-range lattice's). A ray of a
 band is a segment from its camera to the band's far end. Its parent is the previous band's ray whose
 pixel cell holds its pixel; it is walked from the band's near end when the parent and the 8 rays around
-the parent all reached their far end unblocked, not at all when none of them did, and whole (from the
-camera) where they disagree (an occluder's edge), so the edges are as exact as a max-range lattice's.
+the parent all reached their far end unblocked, and not at all when none of them did. Where they disagree
+(an occluder's edge) it is walked from RESUME_MARGIN_VOXELS before the nearest point up to which those 9
+rays are known unblocked: the least, over them, of where a walked ray's walk ended (its first occupied voxel,
+the grid's border or its far end) and, for a ray not walked, that same least point of its own 9 parents.
 Each ray is marched voxel by voxel and stops at its first occupied voxel, so the voxels behind an
 obstacle are never visited. range_bands = 1 is the single max-range lattice.
 """
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
@@ -35,6 +38,8 @@ from nuplan_occ.voxel.traversal import grid_args, mark_traversed, mark_visible_t
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
 """Values of `lidar_observation`."""
+RESUME_MARGIN_VOXELS = 1.0
+"""An edge ray is walked from this many voxels before the nearest point its parent rays walked to unblocked."""
 
 
 class VisibilityError(ValueError):
@@ -112,12 +117,13 @@ def _parent_cells(child: tuple, parent: tuple) -> np.ndarray:
 @dataclass(frozen=True)
 class RayBand:
     """The camera rays of one range band (ego frame, m): starts (R, 3) their cameras' origins, ends (R, 3)
-    at the band's far end along the ray; resume_t: the band's near end as a fraction of a segment; t_block:
+    at the band's far end along the ray (far_m from its camera); resume_t: the band's near end as a fraction of a segment; t_block:
     the fraction before which occupied voxels do not occlude (near_m / far end); parents: (R, 9) int64, the
     previous band's rays of the parent cell and its 8 neighbours (None for the nearest band)."""
 
     starts: np.ndarray
     ends: np.ndarray
+    far_m: float
     resume_t: float
     t_block: float
     parents: np.ndarray | None
@@ -152,10 +158,30 @@ def camera_segments(cameras: list[CameraCalibration], grid: GridSpec = DEFAULT_G
                 parents.append(_parent_cells(lattice, parent_lattice) + parent_first)
             placed.append((lattice, first))
             first += len(dirs)
-        bands.append(RayBand(np.concatenate(starts), np.concatenate(ends), near / far, near_m / far,
+        bands.append(RayBand(np.concatenate(starts), np.concatenate(ends), far, near / far, near_m / far,
                              np.concatenate(parents) if previous is not None else None))
         previous = placed
     return CameraSegments(bands)
+
+
+@numba.njit(cache=True)
+def _walk_starts(parents: np.ndarray, reached: np.ndarray, unblocked_m: np.ndarray, far_m: float, resume_t: float,
+                 margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray of a band (parents (R, 9): its previous band's rays, see `RayBand`): where its walk starts, as a
+    fraction of its segment (resume_t when all 9 reached their far end, inf when none did, else margin_m
+    before the least of their unblocked_m), and that least unblocked distance as a fraction (the stop of a
+    ray not walked). reached (P,), unblocked_m (P,) m: the previous band's rays' outcomes."""
+    from_t, stop_t = np.empty(len(parents)), np.empty(len(parents))
+    for r in range(len(parents)):
+        every, some, least = True, False, np.inf
+        for k in range(parents.shape[1]):
+            p = parents[r, k]
+            every = every and reached[p]
+            some = some or reached[p]
+            least = min(least, unblocked_m[p])
+        stop_t[r] = least / far_m
+        from_t[r] = resume_t if every else (max((least - margin_m) / far_m, 0.0) if some else np.inf)
+    return from_t, stop_t
 
 
 def visible_along(occupied: np.ndarray, segments: CameraSegments, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
@@ -165,16 +191,17 @@ def visible_along(occupied: np.ndarray, segments: CameraSegments, grid: GridSpec
         raise VisibilityError(f"camera_visibility: occupied has shape {occupied.shape}, grid {grid.shape}")
     occ = np.asarray(occupied, dtype=bool).ravel()
     visible = np.zeros(occ.shape, dtype=bool)
-    reached = np.zeros(0, dtype=bool)
+    reached, unblocked_m = np.zeros(0, dtype=bool), np.zeros(0)
     for band in segments.bands:
         if band.parents is None:
-            resume = np.full(len(band.ends), 2, dtype=np.int8)
+            from_t, stop_t = np.zeros(len(band.ends)), np.zeros(len(band.ends))
         else:
-            open_around = reached[band.parents]
-            resume = np.where(open_around.all(axis=1), 1, np.where(open_around.any(axis=1), 2, 0)).astype(np.int8)
+            from_t, stop_t = _walk_starts(band.parents, reached, unblocked_m, band.far_m, band.resume_t,
+                                          RESUME_MARGIN_VOXELS * grid.voxel_size)
         reached = np.empty(len(band.ends), dtype=bool)
-        mark_visible_to_first_hit(band.starts, band.ends, *grid_args(grid), occ, band.t_block, band.resume_t, resume,
-                                  visible, reached)
+        mark_visible_to_first_hit(band.starts, band.ends, *grid_args(grid), occ, band.t_block, from_t, visible, reached,
+                                  stop_t)
+        unblocked_m = stop_t * band.far_m
     return visible.reshape(grid.shape)
 
 

@@ -99,8 +99,9 @@ def camera(yaw, position, f=60.0):
 
 
 def first_hit_entries(starts, ends, occupied, t_block, t_from=None):
-    """Per segment (whole, or from t_from (N,) on): the flat voxels up to its first blocking entry, and
-    whether it ends (t = 1) inside the grid unblocked."""
+    """Per segment (whole, or from t_from (N,) on): the flat voxels up to its first blocking entry, whether it
+    ends (t = 1) inside the grid unblocked, and where its walk stops (its first blocking entry, or where it
+    leaves the grid or ends, within [0, 1]; 0 for a segment missing the grid)."""
     ids, flat, t = reference_entries(starts, ends, GRID, t_from)
     blocking = occupied.ravel()[flat] & (t >= t_block)
     t_hit = np.full(len(starts), np.inf)
@@ -108,7 +109,8 @@ def first_hit_entries(starts, ends, occupied, t_block, t_from=None):
     o = (starts - GRID.lower) / GRID.voxel_size
     t0, t1 = clip_to_box(o, (ends - GRID.lower) / GRID.voxel_size - o, np.asarray(GRID.shape, np.float64))
     met = t0 < t1 if t_from is None else np.maximum(t0, t_from) < t1
-    return flat[t <= t_hit[ids]], met & (t1 >= 1.0) & np.isinf(t_hit)
+    stop = np.where(t0 < t1, np.minimum(t_hit, np.clip(t1, 0.0, 1.0)), 0.0)
+    return flat[t <= t_hit[ids]], met & (t1 >= 1.0) & np.isinf(t_hit), stop
 
 
 def scene_for_cameras(seed):
@@ -128,7 +130,7 @@ def test_camera_visibility_of_one_band_equals_full_traversal(seed):
     for cam in cams:
         origin, dirs = camera_rays(cam, step)
         starts = np.broadcast_to(origin, dirs.shape)
-        seen, _ = first_hit_entries(starts, starts + dirs * max_range, occupied, near / max_range)
+        seen, _, _ = first_hit_entries(starts, starts + dirs * max_range, occupied, near / max_range)
         expected[seen] = True
     got = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near, range_bands=1)
     assert np.array_equal(got.ravel(), expected)
@@ -144,12 +146,14 @@ def pixel_cells(cam, step):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_camera_visibility_by_range_bands_follows_the_band_rule(seed):
     """Bands end at 3.5, 7 and 14 m; a ray resumes at its band's near end when the previous band's 3 x 3 rays
-    around its pixel all reached it unblocked, is skipped when none did, and is walked whole otherwise."""
+    around its pixel all reached it unblocked, is skipped when none did, and otherwise is walked from one voxel
+    before the least distance those rays are known unblocked to (a skipped ray: the least of its own 3 x 3)."""
     occupied, cams = scene_for_cameras(seed)
     max_range, near = 14.0, 0.5
     expected = np.zeros(occupied.size, bool)
+    edges = 0
     for cam in cams:
-        reached, previous = None, None
+        reached, unblocked_m, previous = None, None, None
         for far in (3.5, 7.0, 14.0):
             step = 0.25 / far
             origin, dirs = camera_rays(cam, step)
@@ -158,21 +162,28 @@ def test_camera_visibility_by_range_bands_follows_the_band_rule(seed):
             if reached is None:
                 walk = np.ones(len(dirs), bool)
                 t_from = np.zeros(len(dirs))
+                least_m = np.zeros(len(dirs))
             else:
                 pu, pv, psu, psv = previous
                 cell_u = np.minimum(np.floor(u / psu).astype(int), len(pu) - 1)  # the last cell holds the image's edge
                 cell_v = np.minimum(np.floor(v / psv).astype(int), len(pv) - 1)
                 iu = np.clip(cell_u[:, None, None, None] + np.arange(-1, 2)[:, None], 0, len(pu) - 1)
                 iv = np.clip(cell_v[None, :, None, None] + np.arange(-1, 2), 0, len(pv) - 1)
-                around = reached[(iu * len(pv) + iv).reshape(len(dirs), 9)]
-                walk = around.any(axis=1)
-                t_from = np.where(around.all(axis=1), far / 2 / far, 0.0)
-            seen, reached_now = first_hit_entries(starts[walk], starts[walk] + dirs[walk] * far, occupied, near / far,
-                                                  t_from[walk])
+                around = (iu * len(pv) + iv).reshape(len(dirs), 9)
+                walk = reached[around].any(axis=1)
+                least_m = unblocked_m[around].min(axis=1)
+                edge = walk & ~reached[around].all(axis=1)
+                edges += int(edge.sum())
+                t_from = np.where(reached[around].all(axis=1), 0.5, np.maximum(least_m - 0.25, 0.0) / far)
+            seen, reached_now, stop_now = first_hit_entries(starts[walk], starts[walk] + dirs[walk] * far, occupied,
+                                                            near / far, t_from[walk])
             expected[seen] = True
             reached = np.zeros(len(dirs), bool)
             reached[walk] = reached_now
+            unblocked_m = least_m.copy()
+            unblocked_m[walk] = stop_now * far
             previous = (u, v, *pixel_cells(cam, step)[2:])
+    assert edges > 100
     got = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near, range_bands=3)
     assert np.array_equal(got.ravel(), expected)
     whole = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near, range_bands=1)
