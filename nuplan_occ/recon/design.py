@@ -95,6 +95,43 @@ def _fill(u, scale, gradient, volumes, starts, shapes, los, sizes, indptr, indic
                     heads, indices, data)
 
 
+@numba.njit(cache=True)
+def field_values(u, coefficients, volumes, starts, shapes, los, sizes):
+    """(K,) float32: the field sum_j coefficients[j] B_j(u) at query points u (K, 3) float64 (level-0 units),
+    summed in float64 level by level, each level's 27 terms in `basis.OFFSETS` order and added to the total
+    as one level sum; coefficients (n,) float32 (see `_query_rows` for the other arguments)."""
+    out = np.empty(len(u), dtype=np.float32)
+    b = np.empty((3, 3))
+    base = np.empty(3, dtype=np.int64)
+    for q in range(len(u)):
+        total = 0.0
+        for level in range(len(sizes)):
+            size = sizes[level]
+            for axis in range(3):
+                v = u[q, axis] / size
+                cell = np.floor(v)
+                base[axis] = np.int64(cell) - los[level, axis]
+                f = _factors(v - cell - 0.5)
+                for o in range(3):
+                    b[axis, o] = f[o]
+            nx, ny, nz = shapes[level, 0], shapes[level, 1], shapes[level, 2]
+            level_sum = 0.0
+            for ox in range(3):
+                i = base[0] + ox - 1
+                for oy in range(3):
+                    j = base[1] + oy - 1
+                    for oz in range(3):
+                        m = base[2] + oz - 1
+                        if i < 0 or i >= nx or j < 0 or j >= ny or m < 0 or m >= nz:
+                            continue
+                        found = volumes[starts[level] + (i * ny + j) * nz + m]
+                        if found >= 0:
+                            level_sum += b[0, ox] * b[1, oy] * b[2, oz] * np.float64(coefficients[found])
+            total += level_sum
+        out[q] = np.float32(total)
+    return out
+
+
 def design_matrix(levels: FlatLevels, num_unknowns: int,
                   parts: list[tuple[torch.Tensor, torch.Tensor, bool]]) -> sp.csr_matrix:
     """The design rows of every part (u, row_scale, gradient), one part after another: at query points u

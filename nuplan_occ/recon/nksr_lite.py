@@ -33,15 +33,13 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from nuplan_occ.recon.basis import OFFSETS, gram_weights, stencil
-from nuplan_occ.recon.design import design_matrix
+from nuplan_occ.recon.basis import OFFSETS, gram_weights
+from nuplan_occ.recon.design import design_matrix, field_values
 from nuplan_occ.recon.gram import normal_equations
 from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, unique_voxels
 from nuplan_occ.recon.params import ReconParams
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
-BATCH = 25_000
-"""Query points per vectorised stencil batch of `ImplicitField.evaluate` (bounds its (B, 27, 3) temporaries)."""
 FRONT_OFFSETS = (1.0,)
 """Distances t (level-0 voxels) of the front-offset constraints f(ybar + t nbar) = t. One voxel:
 on the synthetic street, (1, 2) lost 1 % recall at 0.25 m (thin gaps under cars, curbs)."""
@@ -49,26 +47,21 @@ on the synthetic street, (1, 2) lost 1 % recall at 0.25 m (thin gaps under cars,
 
 @dataclass
 class ImplicitField:
-    """The solved field; `evaluate` takes level-0 voxel units relative to `anchor` (metres)."""
+    """The solved field; `evaluate` takes level-0 voxel units relative to `anchor` (metres). levels: the
+    hierarchy's index volumes as `FlatLevels`; coefficients (n,) float32."""
 
     hierarchy: VoxelHierarchy
+    levels: FlatLevels
     coefficients: torch.Tensor
     anchor: np.ndarray
     voxel_size: float
 
     def evaluate(self, u: torch.Tensor) -> torch.Tensor:
-        """f at query points u (K, 3) float64 (level-0 voxel units) -> (K,) float32 voxel units."""
-        out = torch.zeros(len(u), dtype=torch.float32)
-        padded = torch.cat([self.coefficients, torch.zeros(1, dtype=self.coefficients.dtype)])
-        for start in range(0, len(u), BATCH):
-            part = u[start:start + BATCH]
-            total = torch.zeros(len(part), dtype=torch.float64)
-            for level in self.hierarchy.levels:
-                ijk, values, _ = stencil(part, level.size, gradient=False)
-                ids = level.ids(ijk)  # -1 -> the appended zero coefficient
-                total += (values * padded[ids].to(torch.float64)).sum(dim=1)
-            out[start:start + BATCH] = total.to(torch.float32)
-        return out
+        """f at query points u (K, 3) float64 (level-0 voxel units) -> (K,) float32 voxel units (`design.field_values`)."""
+        levels = self.levels
+        return torch.from_numpy(field_values(np.ascontiguousarray(u.numpy(), dtype=np.float64),
+                                             self.coefficients.numpy(), levels.volumes, levels.starts, levels.shapes,
+                                             levels.los, levels.sizes))
 
 
 @dataclass(frozen=True)
@@ -163,7 +156,7 @@ def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, param
     rhs = torch.from_numpy(rhs_values)
     diagonal = torch.from_numpy(matrix.diagonal().astype(np.float32))
     result = jacobi_pcg(to_torch_csr(matrix), diagonal, rhs, params.pcg_tolerance, params.pcg_max_iter)
-    field = ImplicitField(hierarchy=hierarchy, coefficients=result.x, anchor=np.asarray(anchor, dtype=np.float64), voxel_size=params.voxel_size)
+    field = ImplicitField(hierarchy=hierarchy, levels=levels, coefficients=result.x, anchor=np.asarray(anchor, dtype=np.float64), voxel_size=params.voxel_size)
     stats = SolveStats(
         points=len(points), voxels=m0, unknowns=hierarchy.num_unknowns, nnz=int(matrix.nnz),
         iterations=result.iterations, relative_residual=result.relative_residual,

@@ -10,6 +10,7 @@ from nuplan_occ.recon.basis import gram_weights, stencil
 from nuplan_occ.recon.design import design_matrix
 from nuplan_occ.recon.gram import normal_equations
 from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, dilate, unique_voxels
+from nuplan_occ.recon.nksr_lite import ImplicitField
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
 
@@ -137,3 +138,18 @@ def test_lookup_inside_and_beyond_the_index_volume_agree_with_a_dictionary():
     far = torch.cat([near, torch.tensor([[-40, 0, 0], [0, 90, 0]])])  # some beyond it: masked lookups
     for queries in (near, far):
         assert level0.ids(queries).tolist() == [truth.get(tuple(q), -1) for q in queries.tolist()]
+
+
+def test_field_values_are_the_design_rows_times_the_coefficients():
+    rng = np.random.default_rng(11)
+    occupied = unique_voxels(torch.from_numpy(rng.integers(0, 10, (80, 3))))[0]
+    hierarchy = VoxelHierarchy.build(occupied, 3)
+    coefficients = torch.from_numpy(rng.normal(size=hierarchy.num_unknowns).astype(np.float32))
+    u = torch.from_numpy(rng.uniform(-12, 22, (400, 3)))  # some queries beyond every level's voxels
+    levels = FlatLevels.of(hierarchy)
+    rows = design_matrix(levels, hierarchy.num_unknowns, [(u, torch.ones(len(u)), False)]).astype(np.float64)
+    field = ImplicitField(hierarchy, levels, coefficients, np.zeros(3), 0.25)
+    values = field.evaluate(u).numpy()
+    assert values.dtype == np.float32
+    assert np.allclose(values, rows @ coefficients.numpy().astype(np.float64), atol=1e-5)
+    assert np.count_nonzero(values) > 100 and np.count_nonzero(values == 0) > 20
