@@ -24,6 +24,21 @@ def _factors(t: float) -> tuple[float, float, float, float, float, float]:
     return (0.5 * (t - 0.5) ** 2, 0.75 - t * t, 0.5 * (t + 0.5) ** 2, t - 0.5, -2.0 * t, t + 0.5)
 
 
+@numba.njit(cache=True, inline="always")
+def _level_factors(u, q, level, los, sizes, b, db, base):
+    """Fill b, db (3 axes, 3 offsets) with the basis factors and derivatives of query q at `level`, and base (3,)
+    with its voxel relative to the level's index volume."""
+    size = sizes[level]
+    for axis in range(3):
+        v = u[q, axis] / size
+        cell = np.floor(v)
+        base[axis] = np.int64(cell) - los[level, axis]
+        f = _factors(v - cell - 0.5)
+        for o in range(3):
+            b[axis, o] = f[o]
+            db[axis, o] = f[3 + o] / size
+
+
 @numba.njit(cache=True)
 def _query_rows(u, q, scale, gradient, volumes, starts, shapes, los, sizes, b, db, base, count_only,
                 heads, indices, data):
@@ -31,15 +46,7 @@ def _query_rows(u, q, scale, gradient, volumes, starts, shapes, los, sizes, b, d
     else written at heads[0] (and heads[1], heads[2] for the gradient rows)."""
     c = 0
     for level in range(len(sizes)):
-        size = sizes[level]
-        for axis in range(3):
-            v = u[q, axis] / size
-            cell = np.floor(v)
-            base[axis] = np.int64(cell) - los[level, axis]
-            f = _factors(v - cell - 0.5)
-            for o in range(3):
-                b[axis, o] = f[o]
-                db[axis, o] = f[3 + o] / size
+        _level_factors(u, q, level, los, sizes, b, db, base)
         nx, ny, nz = shapes[level, 0], shapes[level, 1], shapes[level, 2]
         for ox in range(3):
             i = base[0] + ox - 1
@@ -101,19 +108,12 @@ def field_values(u, coefficients, volumes, starts, shapes, los, sizes):
     summed in float64 level by level, each level's 27 terms in `basis.OFFSETS` order and added to the total
     as one level sum; coefficients (n,) float32 (see `_query_rows` for the other arguments)."""
     out = np.empty(len(u), dtype=np.float32)
-    b = np.empty((3, 3))
+    b, db = np.empty((3, 3)), np.empty((3, 3))
     base = np.empty(3, dtype=np.int64)
     for q in range(len(u)):
         total = 0.0
         for level in range(len(sizes)):
-            size = sizes[level]
-            for axis in range(3):
-                v = u[q, axis] / size
-                cell = np.floor(v)
-                base[axis] = np.int64(cell) - los[level, axis]
-                f = _factors(v - cell - 0.5)
-                for o in range(3):
-                    b[axis, o] = f[o]
+            _level_factors(u, q, level, los, sizes, b, db, base)
             nx, ny, nz = shapes[level, 0], shapes[level, 1], shapes[level, 2]
             level_sum = 0.0
             for ox in range(3):
