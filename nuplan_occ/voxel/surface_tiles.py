@@ -34,23 +34,47 @@ def transform_rows(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _moved_triangles_near(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray, T: np.ndarray, lower: np.ndarray,
-                          upper: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) the triangles faces[ids] moved by T (as `transform_rows`, same bits) that have a vertex v
-    with lower <= v < upper, in the order of ids."""
-    out = np.empty((len(ids), 3, 3))
-    kept = 0
+                          upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The triangles faces[ids] that have a vertex v, moved by T (as `transform_rows`, same bits), with
+    lower <= v < upper, in the order of ids, as a mesh: (vertices (K', 3): those the kept triangles use, in
+    order of first use, faces (K, 3) into them). Each vertex is moved once however many triangles share it."""
+    slot = np.full(len(vertices), -1, dtype=np.int64)  # vertex -> row of `moved`
+    moved = np.empty((3 * len(ids), 3))
+    inside = np.empty(3 * len(ids), dtype=np.bool_)
+    kept_faces = np.empty((len(ids), 3), dtype=np.int64)
+    n_moved, kept = 0, 0
     for e in ids:
         near = False
         for n in range(3):
-            x, y, z = vertices[faces[e, n], 0], vertices[faces[e, n], 1], vertices[faces[e, n], 2]
-            inside = True
-            for a in range(3):
-                c = T[a, 0] * x + T[a, 1] * y + T[a, 2] * z + T[a, 3]
-                out[kept, n, a] = c
-                inside = inside and lower[a] <= c < upper[a]
-            near = near or inside
+            v = faces[e, n]
+            s = slot[v]
+            if s < 0:
+                s, slot[v] = n_moved, n_moved
+                n_moved += 1
+                x, y, z = vertices[v, 0], vertices[v, 1], vertices[v, 2]
+                within = True
+                for a in range(3):
+                    c = T[a, 0] * x + T[a, 1] * y + T[a, 2] * z + T[a, 3]
+                    moved[s, a] = c
+                    within = within and lower[a] <= c < upper[a]
+                inside[s] = within
+            near = near or inside[s]
+            kept_faces[kept, n] = s
         kept += near
-    return out[:kept]
+    renumbered = np.full(n_moved, -1, dtype=np.int64)
+    used = 0
+    for f in range(kept):
+        for n in range(3):
+            s = kept_faces[f, n]
+            if renumbered[s] < 0:
+                renumbered[s] = used
+                used += 1
+            kept_faces[f, n] = renumbered[s]
+    out = np.empty((used, 3))
+    for s in range(n_moved):
+        if renumbered[s] >= 0:
+            out[renumbered[s]] = moved[s]
+    return out, kept_faces[:kept]
 
 
 @dataclass(frozen=True)
@@ -90,17 +114,16 @@ class SurfaceTiles:
 
     def crop(self, T_box_from_scene: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The surface moved into the box frame (T_box_from_scene, see `transform_rows`) and cut to the
-        triangles with a vertex v in lower <= v < upper (3,), in their order, as a triangle soup: (vertices
-        (3K, 3) m in the box frame, faces (K, 3) = [[0, 1, 2], [3, 4, 5], ...]); for a point set, those
-        points in their order and faces (0, 3)."""
+        triangles with a vertex v in lower <= v < upper (3,), in their order: (vertices (K', 3) m in the box
+        frame, the ones those triangles use in order of first use, faces (K, 3) into them); for a point set,
+        those points in their order and faces (0, 3)."""
         T = np.ascontiguousarray(T_box_from_scene, dtype=np.float64)
         lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
         ids = self.candidates(lower, upper, invert_transform(T))
         if len(self.faces) == 0:
             moved = transform_rows(T, self.vertices[ids])
             return moved[np.all((moved >= lower) & (moved < upper), axis=1)], self.faces
-        soup = _moved_triangles_near(self.vertices, self.faces, ids, T, lower, upper).reshape(-1, 3)
-        return soup, np.arange(len(soup), dtype=np.int64).reshape(-1, 3)
+        return _moved_triangles_near(self.vertices, self.faces, ids, T, lower, upper)
 
 
 def build_surface_tiles(vertices: np.ndarray, faces: np.ndarray, tile_m: float = TILE_M) -> SurfaceTiles:
