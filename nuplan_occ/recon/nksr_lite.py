@@ -29,11 +29,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 import torch
 
-from nuplan_occ.recon.basis import OFFSETS, gram_weights
+from nuplan_occ.recon.basis import gram_weights
 from nuplan_occ.recon.design import design_matrix, field_values
 from nuplan_occ.recon.gram import normal_equations
 from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, unique_voxels
@@ -76,19 +77,44 @@ class SolveStats:
     relative_residual: float
 
 
-def _ridge(hierarchy: VoxelHierarchy) -> sp.csr_matrix:
-    """K: same-level 27-neighbour Gram matrix with entries B(c_i - c_j)."""
-    weights = gram_weights(torch.float32)
-    rows, cols, data = [], [], []
+@numba.njit(cache=True)
+def _neighbour_entries(coords, lo, volume, shape, weights, cols, data, counts):
+    """Row r of one level's block of K: for the voxel coords[r] (level units), the ids (cols[27 r:], ascending)
+    and weights (data[27 r:]) of the voxels among its 27 neighbours (`basis.OFFSETS` order) present in the level's
+    index volume (flat int32 `volume` of `shape`, entry 0 = voxel lo); counts[r] = how many."""
+    for r in range(len(coords)):
+        c = 0
+        for o in range(27):
+            i = coords[r, 0] - lo[0] + o // 9 - 1
+            j = coords[r, 1] - lo[1] + (o // 3) % 3 - 1
+            k = coords[r, 2] - lo[2] + o % 3 - 1
+            if i < 0 or i >= shape[0] or j < 0 or j >= shape[1] or k < 0 or k >= shape[2]:
+                continue
+            found = volume[(i * shape[1] + j) * shape[2] + k]
+            if found >= 0:
+                cols[27 * r + c] = found
+                data[27 * r + c] = weights[o]
+                c += 1
+        counts[r] = c
+
+
+def ridge_matrix(hierarchy: VoxelHierarchy, weight: float) -> sp.csr_matrix:
+    """weight * K, float32 CSR with ascending column ids: K is the same-level 27-neighbour Gram matrix with entries
+    B(c_i - c_j) (`basis.gram_weights`), rows level after level (a level's ids follow its voxels' order)."""
+    weights = gram_weights(torch.float32).numpy()
+    indices, values, counts = [], [], []
     for level in hierarchy.levels:
-        ids = level.ids(level.coords.unsqueeze(1) + OFFSETS)  # (M_l, 27)
-        own = torch.arange(level.offset, level.offset + len(level.coords)).unsqueeze(1).expand(-1, 27)
-        keep = ids >= 0
-        rows.append(own[keep])
-        cols.append(ids[keep])
-        data.append(weights.expand_as(ids)[keep])
+        m = len(level.coords)
+        cols, data, count = np.empty(27 * m, np.int32), np.empty(27 * m, np.float32), np.empty(m, np.int64)
+        _neighbour_entries(level.coords.numpy(), level.lo.numpy(), level.volume.numpy().reshape(-1),
+                           np.asarray(level.volume.shape, dtype=np.int64), weights, cols, data, count)
+        used = (np.arange(27) < count[:, None]).reshape(-1)
+        indices.append(cols[used])
+        values.append(data[used])
+        counts.append(count)
     n = hierarchy.num_unknowns
-    return sp.csr_matrix((torch.cat(data).numpy(), (torch.cat(rows).numpy(), torch.cat(cols).numpy())), shape=(n, n))
+    indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
+    return sp.csr_matrix((np.concatenate(values) * weight, np.concatenate(indices), indptr), shape=(n, n))
 
 
 def _voxel_means(index: torch.Tensor, count: int, values: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
@@ -152,7 +178,7 @@ def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, param
                               (front_scale * steps.repeat_interleave(m0)).numpy().astype(np.float32)])
     design = [design_matrix(levels, n, [(sub_centroid, value_scale, False), (centroid, grad_scale, True),
                                         (front, front_scale, False)])]
-    matrix, rhs_values = normal_equations(design, targets, params.ridge_weight * _ridge(hierarchy))
+    matrix, rhs_values = normal_equations(design, targets, ridge_matrix(hierarchy, params.ridge_weight))
     rhs = torch.from_numpy(rhs_values)
     diagonal = torch.from_numpy(matrix.diagonal().astype(np.float32))
     result = jacobi_pcg(to_torch_csr(matrix), diagonal, rhs, params.pcg_tolerance, params.pcg_max_iter)

@@ -10,7 +10,7 @@ from nuplan_occ.recon.basis import gram_weights, stencil
 from nuplan_occ.recon.design import design_matrix
 from nuplan_occ.recon.gram import normal_equations
 from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, dilate, unique_voxels
-from nuplan_occ.recon.nksr_lite import ImplicitField
+from nuplan_occ.recon.nksr_lite import ImplicitField, ridge_matrix
 from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
 
 
@@ -153,3 +153,21 @@ def test_field_values_are_the_design_rows_times_the_coefficients():
     assert values.dtype == np.float32
     assert np.allclose(values, rows @ coefficients.numpy().astype(np.float64), atol=1e-5)
     assert np.count_nonzero(values) > 100 and np.count_nonzero(values == 0) > 20
+
+
+def test_ridge_holds_the_spline_at_every_same_level_neighbour_offset():
+    rng = np.random.default_rng(12)
+    occupied = unique_voxels(torch.from_numpy(rng.integers(0, 9, (70, 3))))[0]
+    hierarchy = VoxelHierarchy.build(occupied, 3)
+    ridge = ridge_matrix(hierarchy, 0.25).toarray()
+    weights = gram_weights(torch.float32).numpy()
+    expected = np.zeros_like(ridge)
+    for level in hierarchy.levels:
+        coords = level.coords.numpy()
+        for a, ca in enumerate(coords):
+            for b, cb in enumerate(coords):
+                offset = cb - ca
+                if np.abs(offset).max() <= 1:
+                    expected[level.offset + a, level.offset + b] = weights[(offset[0] + 1) * 9 + (offset[1] + 1) * 3
+                                                                           + offset[2] + 1] * np.float32(0.25)
+    assert np.array_equal(ridge, expected) and np.array_equal(ridge, ridge.T)
