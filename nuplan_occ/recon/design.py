@@ -39,6 +39,16 @@ def _level_factors(u, q, level, los, sizes, b, db, base):
             db[axis, o] = f[3 + o] / size
 
 
+@numba.njit(cache=True, inline="always")
+def _coefficient_id(volumes, starts, shapes, level, i, j, m):
+    """The coefficient id of voxel (i, j, m) of a level's index volume (relative to its lo); -1 when absent or
+    outside the volume."""
+    nx, ny, nz = shapes[level, 0], shapes[level, 1], shapes[level, 2]
+    if i < 0 or i >= nx or j < 0 or j >= ny or m < 0 or m >= nz:
+        return -1
+    return volumes[starts[level] + (i * ny + j) * nz + m]
+
+
 @numba.njit(cache=True)
 def _query_rows(u, q, scale, gradient, volumes, starts, shapes, los, sizes, b, db, base, count_only,
                 heads, indices, data):
@@ -47,16 +57,11 @@ def _query_rows(u, q, scale, gradient, volumes, starts, shapes, los, sizes, b, d
     c = 0
     for level in range(len(sizes)):
         _level_factors(u, q, level, los, sizes, b, db, base)
-        nx, ny, nz = shapes[level, 0], shapes[level, 1], shapes[level, 2]
         for ox in range(3):
-            i = base[0] + ox - 1
             for oy in range(3):
-                j = base[1] + oy - 1
                 for oz in range(3):
-                    m = base[2] + oz - 1
-                    if i < 0 or i >= nx or j < 0 or j >= ny or m < 0 or m >= nz:
-                        continue
-                    found = volumes[starts[level] + (i * ny + j) * nz + m]
+                    found = _coefficient_id(volumes, starts, shapes, level, base[0] + ox - 1, base[1] + oy - 1,
+                                            base[2] + oz - 1)
                     if found < 0:
                         continue
                     if not count_only:
@@ -114,17 +119,12 @@ def field_values(u, coefficients, volumes, starts, shapes, los, sizes):
         total = 0.0
         for level in range(len(sizes)):
             _level_factors(u, q, level, los, sizes, b, db, base)
-            nx, ny, nz = shapes[level, 0], shapes[level, 1], shapes[level, 2]
             level_sum = 0.0
             for ox in range(3):
-                i = base[0] + ox - 1
                 for oy in range(3):
-                    j = base[1] + oy - 1
                     for oz in range(3):
-                        m = base[2] + oz - 1
-                        if i < 0 or i >= nx or j < 0 or j >= ny or m < 0 or m >= nz:
-                            continue
-                        found = volumes[starts[level] + (i * ny + j) * nz + m]
+                        found = _coefficient_id(volumes, starts, shapes, level, base[0] + ox - 1, base[1] + oy - 1,
+                                                base[2] + oz - 1)
                         if found >= 0:
                             level_sum += b[0, ox] * b[1, oy] * b[2, oz] * np.float64(coefficients[found])
             total += level_sum
