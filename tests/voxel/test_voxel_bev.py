@@ -1,7 +1,9 @@
 """BEV rasterization of map layers at a rotated pose lands in the right ego-frame cells."""
 
 import numpy as np
+import pytest
 import shapely
+from scipy.spatial.transform import Rotation
 
 from nuplan_occ.geometry import make_transform, yaw_matrix
 from nuplan_occ.grid import GridSpec
@@ -13,11 +15,13 @@ GRID = GridSpec(x_min=-10, x_max=10, y_min=-10, y_max=10, z_min=-2, z_max=2, vox
 YAW = np.deg2rad(60.0)
 ORIGIN = np.array([500_000.0, 4_000_000.0, 10.0])  # a UTM-like global position
 T_GLOBAL_FROM_EGO = make_transform(yaw_matrix(YAW), ORIGIN)
+T_TILTED = make_transform(Rotation.from_euler("zyx", [YAW, np.deg2rad(3.0), np.deg2rad(-2.0)]).as_matrix(), ORIGIN)
+"""A pose with pitch and roll: its cell centres map to global x, y by a 2 x 2 block that is not a rotation."""
 
 
-def to_global(xy_ego):
+def to_global(xy_ego, T=T_GLOBAL_FROM_EGO):
     xy = np.asarray(xy_ego, dtype=float)
-    return xy @ yaw_matrix(YAW)[:2, :2].T + ORIGIN[:2]
+    return xy @ T[:2, :2].T + T[:2, 3]
 
 
 def cell(x, y):
@@ -64,23 +68,25 @@ def test_given_stop_lines_replace_the_stop_polygon_outlines():
     assert outline[cell(4.9, 2.5)] == ROAD_LINE and outline[cell(3.1, 2.5)] == ROAD_LINE
 
 
-def test_blockwise_classification_equals_cell_by_cell_reference():
+@pytest.mark.parametrize("T", [T_GLOBAL_FROM_EGO, T_TILTED], ids=["level", "tilted"])
+def test_blockwise_classification_equals_cell_by_cell_reference(T):
     """Road and line cells equal the per-cell definition (centre in the road; square overlapping the strip),
-    also for a road with a hole, a sliver thinner than a cell and lines crossing blocks at every angle."""
+    also for a road with a hole, a sliver thinner than a cell and lines crossing blocks at every angle, and for
+    a pitched and rolled ego (whose squares are not squares in the global frame)."""
     rng = np.random.default_rng(3)
-    ring = shapely.Polygon(to_global([[-8, -8], [8, -8], [8, 8], [-8, 8]]),
-                           [to_global([[-3, -2], [4, -3], [2, 5], [-4, 3]])])
-    sliver = shapely.Polygon(to_global([[-9.9, 9.0], [9.9, 9.1], [9.9, 9.15], [-9.9, 9.05]]))
-    lines = [shapely.LineString(to_global(rng.uniform(-12, 12, size=(4, 2)))) for _ in range(6)]
+    ring = shapely.Polygon(to_global([[-8, -8], [8, -8], [8, 8], [-8, 8]], T),
+                           [to_global([[-3, -2], [4, -3], [2, 5], [-4, 3]], T)])
+    sliver = shapely.Polygon(to_global([[-9.9, 9.0], [9.9, 9.1], [9.9, 9.15], [-9.9, 9.05]], T))
+    lines = [shapely.LineString(to_global(rng.uniform(-12, 12, size=(4, 2)), T)) for _ in range(6)]
     layers = {"road_segments": MapLayer(np.array([ring, sliver], dtype=object)),
               "boundaries": MapLayer(np.array(lines, dtype=object))}
-    bev = rasterize_bev(layers, T_GLOBAL_FROM_EGO, GRID, line_width_m=0.15)
+    bev = rasterize_bev(layers, T, GRID, line_width_m=0.15)
     s = GRID.voxel_size
     centres = np.stack(np.meshgrid(GRID.x_min + (np.arange(80) + 0.5) * s, GRID.y_min + (np.arange(80) + 0.5) * s,
                                    indexing="ij"), axis=-1)
-    road = shapely.intersects_xy(shapely.union_all([ring, sliver]), *to_global(centres.reshape(-1, 2)).T)
+    road = shapely.intersects_xy(shapely.union_all([ring, sliver]), *to_global(centres.reshape(-1, 2), T).T)
     squares = shapely.polygons(to_global((centres.reshape(-1, 1, 2) + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
-                                          * s / 2).reshape(-1, 2)).reshape(-1, 4, 2))
+                                          * s / 2).reshape(-1, 2), T).reshape(-1, 4, 2))
     painted = shapely.intersects(squares, shapely.buffer(shapely.union_all(lines), 0.075, cap_style="flat"))
     expected = np.where(painted, ROAD_LINE, np.where(road, ROAD, OTHER_GROUND)).reshape(80, 80)
     assert 0 < (expected == ROAD_LINE).sum() and 0 < (expected == ROAD).sum() and 0 < (expected == OTHER_GROUND).sum()
