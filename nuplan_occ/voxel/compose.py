@@ -67,8 +67,9 @@ class PlacedObject:
         """(M, 3) unique indices of the grid voxels holding at least one of `own_points` (none if None)."""
         if self.own_points is None or len(self.own_points) == 0:
             return np.zeros((0, 3), dtype=np.int64)
-        return inside_grid(mesh_voxel_indices(self._to_ego(self.own_points), np.zeros((0, 3), np.int64), grid,
-                                              clip=False), grid)
+        index, inside = grid.point_to_index(self._to_ego(self.own_points))
+        flat = np.unique(np.ravel_multi_index(index[inside].T, grid.shape))  # C order = sorted rows
+        return np.stack(np.unravel_index(flat, grid.shape), axis=1).astype(np.int64)
 
 
 @dataclass
