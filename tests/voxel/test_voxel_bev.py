@@ -91,3 +91,21 @@ def test_blockwise_classification_equals_cell_by_cell_reference(T):
     expected = np.where(painted, ROAD_LINE, np.where(road, ROAD, OTHER_GROUND)).reshape(80, 80)
     assert 0 < (expected == ROAD_LINE).sum() and 0 < (expected == ROAD).sum() and 0 < (expected == OTHER_GROUND).sum()
     assert np.array_equal(bev, expected)
+
+
+def test_segment_cells_are_the_closed_squares_the_segment_meets():
+    """mark_segment_cells against shapely's intersects of each closed cell square with each segment, also for
+    segments along a cell edge, through a corner, vertical, degenerate (a point) and reaching past the grid."""
+    from nuplan_occ.voxel.bev import mark_segment_cells
+
+    rng = np.random.default_rng(5)
+    segments = [rng.uniform(-2, 10, size=(2, 2)) for _ in range(40)]
+    segments += [np.array([[1.0, 2.0], [5.0, 2.0]]), np.array([[3.0, 1.0], [3.0, 6.5]]), np.array([[1.0, 1.0], [4.0, 4.0]]),
+                 np.array([[2.5, 2.5], [2.5, 2.5]]), np.array([[7.5, 0.2], [7.5, 3.7]]), np.array([[-3.0, 4.2], [12.0, 5.1]])]
+    for segment in segments:
+        out = np.zeros((8, 8), dtype=bool)
+        mark_segment_cells(segment[:1].copy(), segment[1:].copy(), out)
+        line = shapely.LineString(segment) if np.any(segment[0] != segment[1]) else shapely.Point(segment[0])
+        squares = shapely.box(*np.meshgrid(np.arange(8.0), np.arange(8.0), indexing="ij"),
+                              *np.meshgrid(np.arange(1.0, 9.0), np.arange(1.0, 9.0), indexing="ij"))
+        assert np.array_equal(out, shapely.intersects(squares, line)), segment
