@@ -9,7 +9,7 @@ from nuplan_occ.geometry import make_transform, yaw_matrix
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.io.types import MapLayer
 from nuplan_occ.labels import OTHER_GROUND, ROAD, ROAD_LINE
-from nuplan_occ.voxel.bev import rasterize_bev
+from nuplan_occ.voxel.bev import mark_segment_cells, rasterize_bev
 
 GRID = GridSpec(x_min=-10, x_max=10, y_min=-10, y_max=10, z_min=-2, z_max=2, voxel_size=0.25)
 YAW = np.deg2rad(60.0)
@@ -96,8 +96,6 @@ def test_blockwise_classification_equals_cell_by_cell_reference(T):
 def test_segment_cells_are_the_closed_squares_the_segment_meets():
     """mark_segment_cells against shapely's intersects of each closed cell square with each segment, also for
     segments along a cell edge, through a corner, vertical, degenerate (a point) and reaching past the grid."""
-    from nuplan_occ.voxel.bev import mark_segment_cells
-
     rng = np.random.default_rng(5)
     segments = [rng.uniform(-2, 10, size=(2, 2)) for _ in range(40)]
     segments += [np.array([[1.0, 2.0], [5.0, 2.0]]), np.array([[3.0, 1.0], [3.0, 6.5]]), np.array([[1.0, 1.0], [4.0, 4.0]]),
