@@ -130,8 +130,8 @@ def mark_segment_cells(starts: np.ndarray, ends: np.ndarray, out: np.ndarray) ->
             xa, xb = max(x0, float(i)), min(x1, float(i + 1))
             if xa > xb:
                 continue
-            ya = y0 + (xa - x0) * slope if x1 > x0 else y0
-            yb = y0 + (xb - x0) * slope if x1 > x0 else y1
+            ya = y0 + (xa - x0) * slope
+            yb = y0 + (xb - x0) * slope if x1 > x0 else y1  # a vertical segment spans y0 .. y1 in its column
             lo, hi = min(ya, yb), max(ya, yb)
             for j in range(max(int(math.ceil(lo)) - 1, 0), min(int(math.floor(hi)), ny - 1) + 1):
                 out[i, j] = True

@@ -31,6 +31,12 @@ from nuplan_occ.voxel.voxelize import (
 )
 
 
+def _unique_grid_indices(indices: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """The unique rows of (M, 3) int voxel indices that all lie inside the grid, sorted (as int64)."""
+    flat = np.unique(np.ravel_multi_index(np.asarray(indices).T, grid.shape))  # C order = sorted rows
+    return np.stack(np.unravel_index(flat, grid.shape), axis=1).astype(np.int64)
+
+
 @dataclass
 class PlacedObject:
     """One object at one frame. vertices (V, 3) metres in the object's BOX frame (origin at the box
@@ -68,8 +74,7 @@ class PlacedObject:
         if self.own_points is None or len(self.own_points) == 0:
             return np.zeros((0, 3), dtype=np.int64)
         index, inside = grid.point_to_index(self._to_ego(self.own_points))
-        flat = np.unique(np.ravel_multi_index(index[inside].T, grid.shape))  # C order = sorted rows
-        return np.stack(np.unravel_index(flat, grid.shape), axis=1).astype(np.int64)
+        return _unique_grid_indices(index[inside], grid)
 
 
 @dataclass
@@ -118,9 +123,8 @@ def object_voxel_indices(obj: PlacedObject, grid: GridSpec = DEFAULT_GRID, fill:
 def _object_voxels(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> tuple[np.ndarray, np.ndarray]:
     """(`object_voxel_indices`, the voxels holding its own points)."""
     points = obj.own_point_voxels(grid)
-    both = np.concatenate([_geometry_voxel_indices(obj, grid, fill, box_margin_m), points])
-    flat = np.unique(np.ravel_multi_index(both.T, grid.shape))  # both are inside the grid; C order = sorted rows
-    return np.stack(np.unravel_index(flat, grid.shape), axis=1).astype(np.int64), points
+    geometry = _geometry_voxel_indices(obj, grid, fill, box_margin_m)
+    return _unique_grid_indices(np.concatenate([geometry, points]), grid), points
 
 
 def _geometry_voxel_indices(obj: PlacedObject, grid: GridSpec, fill: bool, box_margin_m: float | None) -> np.ndarray:

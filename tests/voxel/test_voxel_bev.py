@@ -100,10 +100,10 @@ def test_segment_cells_are_the_closed_squares_the_segment_meets():
     segments = [rng.uniform(-2, 10, size=(2, 2)) for _ in range(40)]
     segments += [np.array([[1.0, 2.0], [5.0, 2.0]]), np.array([[3.0, 1.0], [3.0, 6.5]]), np.array([[1.0, 1.0], [4.0, 4.0]]),
                  np.array([[2.5, 2.5], [2.5, 2.5]]), np.array([[7.5, 0.2], [7.5, 3.7]]), np.array([[-3.0, 4.2], [12.0, 5.1]])]
+    squares = shapely.box(*np.meshgrid(np.arange(8.0), np.arange(8.0), indexing="ij"),
+                          *np.meshgrid(np.arange(1.0, 9.0), np.arange(1.0, 9.0), indexing="ij"))
     for segment in segments:
         out = np.zeros((8, 8), dtype=bool)
         mark_segment_cells(segment[:1].copy(), segment[1:].copy(), out)
         line = shapely.LineString(segment) if np.any(segment[0] != segment[1]) else shapely.Point(segment[0])
-        squares = shapely.box(*np.meshgrid(np.arange(8.0), np.arange(8.0), indexing="ij"),
-                              *np.meshgrid(np.arange(1.0, 9.0), np.arange(1.0, 9.0), indexing="ij"))
         assert np.array_equal(out, shapely.intersects(squares, line)), segment
