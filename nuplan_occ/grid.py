@@ -9,6 +9,7 @@ Default: x, y in [-50, 50) m, z in [-3, 5) m, s = 0.25 m, shape 400 x 400 x 32.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -40,9 +41,9 @@ class GridSpec:
         """Metres from the ego origin to the grid's farthest corner: no point farther away is inside the grid."""
         return float(np.linalg.norm(np.maximum(np.abs(self.lower), np.abs(self.upper))))
 
-    @property
+    @cached_property
     def shape(self) -> tuple[int, int, int]:
-        """Number of voxels along x, y, z."""
+        """Number of voxels along x, y, z (computed once: hot loops ask for it per call)."""
         extent = (self.upper - self.lower) / self.voxel_size
         return tuple(int(round(v)) for v in extent)  # type: ignore[return-value]
 

@@ -96,8 +96,7 @@ def run(inputs: dict, frame: dict, params: LabelParams) -> dict:
                             line_width_m=params.line_width_m, stop_lines=inputs["stop_lines"])
         background = label_background(grid.occupied_background, bev, DEFAULT_GRID,
                                       ground_tolerance_m=params.ground_tolerance_m, ground_height=grid.ground_height)
-        replace = grid.occupied_background & (labeled == OTHER)
-        labeled[replace] = background[replace]
+        np.copyto(labeled, background, where=grid.occupied_background & (labeled == OTHER))
     return {"semantics": labeled}
 
 

@@ -62,10 +62,10 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
 def zero_cleared(instance: np.ndarray, flow: np.ndarray, semantics: np.ndarray) -> None:
     """Set instance ids (X, Y, Z) and flow (X, Y, Z, 3) to 0, in place, in the voxels the visibility stage
     emptied (semantics 0). The frame's grids end with this stage, so nothing else reads them afterwards."""
-    stale = (instance > 0) & (semantics == 0)
-    if stale.any():
-        instance[stale] = 0
-        flow[stale] = 0
+    labeled = np.flatnonzero(instance)  # object voxels are few: only they are looked at
+    stale = np.unravel_index(labeled[semantics.reshape(-1)[labeled] == 0], instance.shape)
+    instance[stale] = 0
+    flow[stale] = 0
 
 
 def prepare(inputs: dict, params: WriteParams) -> dict:

@@ -8,6 +8,8 @@ import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import Boxes
+from nuplan_occ.voxel.frame_lookup import flat_voxels
+from nuplan_occ.voxel.traversal import grid_args
 
 MOVING_SPEED_MPS = 0.5
 """An agent whose box speed exceeds this counts as moving."""
@@ -35,20 +37,23 @@ def agent_speed_columns(boxes: Boxes) -> dict[str, float | int]:
 def point_coverage(points_ego: np.ndarray, occupied: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> float:
     """Fraction of a sweep's own returns inside the grid that fall in an occupied voxel or one of its
     26 neighbours (how well the grid explains the sweep); NaN with no returns inside the grid."""
-    index, inside = grid.point_to_index(points_ego)
-    index = index[inside]
-    if len(index) == 0:
+    flat = flat_voxels(np.ascontiguousarray(points_ego, dtype=np.float64).reshape(-1, 3), *grid_args(grid))
+    flat = flat[flat >= 0]
+    if len(flat) == 0:
         return float("nan")
-    return _count_near_occupied(index, np.ascontiguousarray(occupied, dtype=bool)) / len(index)
+    return _count_near_occupied(flat, np.ascontiguousarray(occupied, dtype=bool)) / len(flat)
 
 
 @numba.njit(cache=True)
-def _count_near_occupied(index: np.ndarray, occupied: np.ndarray) -> int:
-    """How many of the voxel indices (N, 3), all inside `occupied` (X, Y, Z) bool, have an occupied voxel among
-    themselves and their 26 neighbours."""
+def _count_near_occupied(flat: np.ndarray, occupied: np.ndarray) -> int:
+    """How many of the flat C-order voxel indices (N,), all inside `occupied` (X, Y, Z) bool, have an occupied
+    voxel among themselves and their 26 neighbours."""
     count = 0
-    for n in range(index.shape[0]):
-        count += _occupied_around(occupied, index[n, 0], index[n, 1], index[n, 2])
+    _, columns, layers = occupied.shape
+    for n in range(flat.shape[0]):
+        column, k = divmod(flat[n], layers)
+        i, j = divmod(column, columns)
+        count += _occupied_around(occupied, i, j, k)
     return count
 
 

@@ -25,7 +25,9 @@ import numpy as np
 from nuplan_occ.geometry import yaw_matrix
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import OTHER
+from nuplan_occ.voxel.frame_lookup import flat_voxels
 from nuplan_occ.voxel.ground import estimate_ground_height, ground_height_index, label_background
+from nuplan_occ.voxel.traversal import grid_args
 from nuplan_occ.voxel.voxelize import (
     VoxelizeError, box_voxel_indices, fill_enclosed, in_box, inside_grid, mesh_voxel_grid, mesh_voxel_indices,
 )
@@ -33,7 +35,11 @@ from nuplan_occ.voxel.voxelize import (
 
 def _unique_grid_indices(indices: np.ndarray, grid: GridSpec) -> np.ndarray:
     """The unique rows of (M, 3) int voxel indices that all lie inside the grid, sorted (as int64)."""
-    flat = np.unique(np.ravel_multi_index(np.asarray(indices).T, grid.shape))  # C order = sorted rows
+    return _grid_indices_of(np.unique(np.ravel_multi_index(np.asarray(indices).T, grid.shape)), grid)
+
+
+def _grid_indices_of(flat: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """(M, 3) int64 voxel indices of flat C-order indices (M,) of the grid (sorted flat indices: sorted rows)."""
     return np.stack(np.unravel_index(flat, grid.shape), axis=1).astype(np.int64)
 
 
@@ -73,8 +79,8 @@ class PlacedObject:
         """(M, 3) unique indices of the grid voxels holding at least one of `own_points` (none if None)."""
         if self.own_points is None or len(self.own_points) == 0:
             return np.zeros((0, 3), dtype=np.int64)
-        index, inside = grid.point_to_index(self._to_ego(self.own_points))
-        return _unique_grid_indices(index[inside], grid)
+        flat = flat_voxels(self._to_ego(self.own_points), *grid_args(grid))
+        return _grid_indices_of(np.unique(flat[flat >= 0]), grid)
 
 
 @dataclass
@@ -98,12 +104,12 @@ def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_
                         grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     """(N,) bool: points (N, 3, ego frame, m) inside the grid whose voxel holds at least min_count of them or
     an anchor point (anchors (N,) bool or None)."""
-    idx, inside = grid.point_to_index(points_ego)
-    keep = np.zeros(len(idx), dtype=bool)
+    flat = flat_voxels(np.ascontiguousarray(points_ego, dtype=np.float64).reshape(-1, 3), *grid_args(grid))
+    inside = flat >= 0
+    keep = np.zeros(len(flat), dtype=bool)
     if not inside.any():
         return keep
-    _, inverse, counts = np.unique(np.ravel_multi_index(idx[inside].T, grid.shape), return_inverse=True,
-                                   return_counts=True)
+    _, inverse, counts = np.unique(flat[inside], return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     crowded = counts >= min_count
     if anchors is not None:

@@ -27,6 +27,23 @@ def moved_voxel(p, T, lower, voxel_size, shape):
 
 
 @numba.njit(cache=True)
+def flat_voxels(points, lower, voxel_size, shape):
+    """(N,) int64: the flat index of the voxel holding each point of points (N, 3), in the grid's own frame (m),
+    -1 outside the grid or not finite (the voxels of `GridSpec.point_to_index`, in one pass)."""
+    out = np.empty(points.shape[0], np.int64)
+    for n in range(points.shape[0]):
+        flat = 0
+        for i in range(3):
+            u = (points[n, i] - lower[i]) / voxel_size
+            if not (u >= 0.0 and u < shape[i]):
+                flat = -1
+                break
+            flat = flat * shape[i] + int(u)
+        out[n] = flat
+    return out
+
+
+@numba.njit(cache=True)
 def mark_points(points, T, lower, voxel_size, shape, window_lo, window_hi, out):
     """out[v] = True for the voxel v holding T p of every point p of points (N, 3) inside the axis-aligned
     window [window_lo, window_hi] (3,) of their own frame (m); out: flat bool grid. The window must hold the

@@ -36,10 +36,21 @@ def _check_shape(array: np.ndarray, shape: tuple[int, ...], name: str) -> None:
 def lowest_occupied_height(occupied: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     """(X, Y) float64: centre z (m, ego frame) of the lowest occupied voxel per column, NaN if none."""
     _check_shape(occupied, grid.shape, "lowest_occupied_height")
-    any_occ = occupied.any(axis=2)
-    k = np.argmax(occupied, axis=2)
-    heights = grid.z_min + (k + 0.5) * grid.voxel_size
-    return np.where(any_occ, heights, np.nan)
+    heights = np.full(grid.shape[:2], np.nan)
+    _lowest_occupied(np.asarray(occupied, dtype=bool), float(grid.z_min), float(grid.voxel_size), heights)
+    return heights
+
+
+@numba.njit(cache=True)
+def _lowest_occupied(occupied: np.ndarray, z_min: float, voxel_size: float, heights: np.ndarray) -> None:
+    """heights[i, j] = z_min + (k + 0.5) * voxel_size for the lowest occupied k of column (i, j); columns
+    without one keep their value."""
+    for i in range(occupied.shape[0]):
+        for j in range(occupied.shape[1]):
+            for k in range(occupied.shape[2]):
+                if occupied[i, j, k]:
+                    heights[i, j] = z_min + (k + 0.5) * voxel_size
+                    break
 
 
 def estimate_ground_height(occupied: np.ndarray, grid: GridSpec = DEFAULT_GRID, window_m: float = 4.0,

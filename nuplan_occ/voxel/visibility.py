@@ -34,6 +34,7 @@ import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import CameraCalibration
+from nuplan_occ.voxel.frame_lookup import flat_voxels
 from nuplan_occ.voxel.traversal import grid_args, mark_traversed, mark_visible_to_first_hit
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
@@ -61,9 +62,8 @@ def lidar_observation(points_ego: np.ndarray, origins_ego: np.ndarray, grid: Gri
     origins = np.ascontiguousarray(np.broadcast_to(np.asarray(origins_ego, dtype=np.float64), points.shape))
     obs = np.zeros(int(np.prod(grid.shape)), dtype=np.uint8)
     mark_traversed(origins, np.ascontiguousarray(points), *grid_args(grid), obs, FREE)
-    idx, inside = grid.point_to_index(points)
-    idx = idx[inside]
-    obs[(idx[:, 0] * grid.shape[1] + idx[:, 1]) * grid.shape[2] + idx[:, 2]] = OCCUPIED
+    returns = flat_voxels(np.ascontiguousarray(points), *grid_args(grid))
+    obs[returns[returns >= 0]] = OCCUPIED
     return obs.reshape(grid.shape)
 
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points, yaw_matrix
 from nuplan_occ.grid import GridSpec
-from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
+from nuplan_occ.voxel.frame_lookup import any_bit_set, flat_voxels, mark_points
 from nuplan_occ.voxel.free_space import grid_window
 from nuplan_occ.voxel.traversal import grid_args
 
@@ -65,3 +65,17 @@ def test_first_hit_lookup_is_the_or_over_frames_in_any_order():
         any_bit_set(points, transforms[order], bits[order], *grid_args(GRID), out)
         assert np.array_equal(out, expected)
     assert 0 < expected.sum() < len(points)
+
+
+def test_flat_voxels_are_the_point_to_index_voxels_on_and_around_every_boundary():
+    rng = np.random.default_rng(3)
+    edges = [np.arange(lo, hi + 1e-9, GRID.voxel_size) for lo, hi in
+             ((GRID.x_min, GRID.x_max), (GRID.y_min, GRID.y_max), (GRID.z_min, GRID.z_max))]
+    on_edges = np.stack([rng.choice(e, 3000) + rng.choice([0.0, 1e-12, -1e-12, 0.1], 3000) for e in edges], axis=1)
+    wide = rng.uniform(-6, 6, size=(3000, 3))
+    points = np.concatenate([on_edges, wide, [[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf]]])
+    index, inside = GRID.point_to_index(points)
+    expected = np.where(inside, np.ravel_multi_index(index.T, GRID.shape), -1)
+    got = flat_voxels(points, *grid_args(GRID))
+    assert 0 < inside.sum() < len(points) - 3
+    assert np.array_equal(got, expected)

@@ -5,7 +5,9 @@ import numpy as np
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import OTHER, OTHER_GROUND, ROAD, ROAD_LINE
 from nuplan_occ.voxel.baseline import paper_column_stamp
-from nuplan_occ.voxel.ground import estimate_ground_height, ground_height_index, label_background
+from nuplan_occ.voxel.ground import (
+    estimate_ground_height, ground_height_index, label_background, lowest_occupied_height,
+)
 
 GRID = GridSpec(x_min=-8, x_max=8, y_min=-8, y_max=8, z_min=-3, z_max=5, voxel_size=0.25)
 GROUND_K = 6  # z in [-1.5, -1.25)
@@ -66,3 +68,17 @@ def test_label_background_equals_the_columnwise_formula():
         near = np.abs(z[None, None, :] - h[:, :, None]) <= 0.3 + 1e-9
     expected = np.where(occ, np.where(near, bev[:, :, None], OTHER), 0)
     assert np.array_equal(label_background(occ, bev, GRID, 0.3, h), expected)
+
+
+def test_lowest_occupied_height_is_the_centre_of_each_columns_lowest_voxel():
+    occ, _ = scene()
+    h = lowest_occupied_height(occ, GRID)
+    assert h[0, 0] == GRID.z_min + (GROUND_K + 0.5) * 0.25
+    assert h[30, 30] == GRID.z_min + (20 + 0.5) * 0.25  # canopy over the patch without ground
+    assert h[34, 34] == h[0, 0]  # canopy over ground: the ground
+    occ[5, 5, :] = False
+    occ[5, 5, GRID.shape[2] - 1] = True  # only the top layer
+    h = lowest_occupied_height(occ, GRID)
+    assert h[5, 5] == GRID.z_min + (GRID.shape[2] - 0.5) * 0.25
+    occ[6, 6, :] = False
+    assert np.isnan(lowest_occupied_height(occ, GRID)[6, 6])
