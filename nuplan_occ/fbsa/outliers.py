@@ -21,7 +21,6 @@ fewer real points with 8 (range at k=20: 0.80 / 0.5 % and 0.87 / 0.03 %), and th
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.knn import knn_distance_chunks
@@ -38,6 +37,8 @@ def _global_mask(points: np.ndarray, k_sigma: float) -> np.ndarray:
 
 
 def _knn_mask(points: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:
+    import open3d as o3d  # heavy import (~1 s), only for this non-default method
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     _, kept = cloud.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
     keep = np.zeros(len(points), dtype=bool)

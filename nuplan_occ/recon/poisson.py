@@ -8,7 +8,6 @@ Poisson is watertight and closes open outdoor scenes with a bubble, so low-densi
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from nuplan_occ.recon.cleanup import compact
@@ -19,6 +18,8 @@ def poisson_mesh(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Trimmed Poisson mesh (vertices (V, 3) float64 metres, faces (F, 3) int64); `tree` is a
     KD-tree over `points` for the distance trim; threads -1 = all cores."""
+    import open3d as o3d  # heavy import (~1 s), only for this non-default method
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     cloud.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
     mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=int(depth), n_threads=int(threads))
