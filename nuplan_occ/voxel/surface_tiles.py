@@ -102,15 +102,17 @@ class SurfaceTiles:
         corners = np.stack(np.meshgrid(*zip(lower, upper), indexing="ij"), axis=-1).reshape(-1, 3)
         xy = transform_rows(T_scene_from_box, corners)[:, :2]
         low, high = xy.min(axis=0) - _SLACK_M, xy.max(axis=0) + _SLACK_M
-        found = [self.wide[np.all((self.wide_low <= high) & (self.wide_high >= low), axis=1)]]
+        found = np.zeros(len(self.order) + len(self.wide), dtype=bool)  # the lists are disjoint: mark, then read in order
+        found[self.wide[np.all((self.wide_low <= high) & (self.wide_high >= low), axis=1)]] = True
         first = np.maximum(np.floor((low - self.tile_m - self.origin) / self.tile_m).astype(np.int64), 0)
         last = np.minimum(np.floor((high - self.origin) / self.tile_m).astype(np.int64), np.asarray(self.n_tiles) - 1)
         if np.all(first <= last):
             rows = np.arange(first[0], last[0] + 1) * self.n_tiles[1]
             starts = np.searchsorted(self.keys, rows + first[1], side="left")
             stops = np.searchsorted(self.keys, rows + last[1], side="right")
-            found += [self.order[a:b] for a, b in zip(starts, stops)]
-        return np.sort(np.concatenate(found))
+            for a, b in zip(starts, stops):
+                found[self.order[a:b]] = True
+        return np.flatnonzero(found)
 
     def crop(self, T_box_from_scene: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The surface moved into the box frame (T_box_from_scene, see `transform_rows`) and cut to the
