@@ -29,9 +29,9 @@ from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.free_space import (
-    clearable_background, crossed_objects, free_voxels_in_frames, grid_window, packed_free, point_support,
+    clearable_background, crossed_objects, free_voxels_in_frames, grid_window, packed_observation, point_support,
 )
-from nuplan_occ.voxel.visibility import UNKNOWN, camera_segments, lidar_observation, visible_along
+from nuplan_occ.voxel.visibility import camera_segments, lidar_observation, visible_along
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ def run_rays(inputs: dict, params: VisibilityParams) -> dict:
     def observation_bits():  # one frame at a time, while the cache stores them
         for position in positions:
             observation = lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
-            yield np.concatenate([np.packbits((observation != UNKNOWN).reshape(-1)), packed_free(observation)])
+            yield np.concatenate(packed_observation(observation))
 
     return {"observations": RayObservations([scene.sweeps[p].token for p in positions]),
             "observation_bits": observation_bits()}

@@ -27,7 +27,6 @@ from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.voxel.frame_lookup import moved_voxel
 from nuplan_occ.voxel.traversal import grid_args
-from nuplan_occ.voxel.visibility import FREE, OCCUPIED
 
 
 @numba.njit(cache=True, inline="always")
@@ -77,25 +76,26 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _count_votes(points, candidates, ys, first, last, ego_y, reach, T_ego_from_scene, lower, voxel_size, shape,
-                 is_free, is_blocked, free, near_returns):
+                 free_bits, blocked_bits, free, near_returns):
     """For the candidates[first:last] (indices into points (M, 3), scene frame) whose y (ys, m) is within reach
-    of ego_y: the voxel of the sweep's grid holding the point (flat bool grids is_free / is_blocked) adds one
-    to near_returns[n] when blocked, else one to free[n] when free."""
+    of ego_y: the voxel of the sweep's grid holding the point (packed bits of the flat grids, np.packbits order)
+    adds one to near_returns[n] when set in blocked_bits, else one to free[n] when set in free_bits."""
     for n in range(first, last):
         if abs(ys[n] - ego_y) > reach:
             continue
         v = moved_voxel(points[candidates[n]], T_ego_from_scene, lower, voxel_size, shape)
         if v < 0:
             continue
-        if is_blocked[v]:
+        byte, bit = v >> 3, 7 - (v & 7)
+        if (blocked_bits[byte] >> bit) & 1:
             near_returns[n] += 1
-        elif is_free[v]:
+        elif (free_bits[byte] >> bit) & 1:
             free[n] += 1
 
 
 def seen_through(
     points_scene: np.ndarray,
-    observations: Sequence[np.ndarray],
+    observations: Sequence[tuple[np.ndarray, np.ndarray]],
     T_scene_from_ego: np.ndarray,
     grid: GridSpec = DEFAULT_GRID,
     min_votes: int = 2,
@@ -106,11 +106,12 @@ def seen_through(
 ) -> np.ndarray:
     """bool (M,): the background points (M, 3), scene frame, to remove as dynamic (see module doc).
 
-    observations: F grids (uint8 (X, Y, Z) in `grid`, `lidar_observation` of sweep f's returns in its ego
-    frame; any sequence, each read once); T_scene_from_ego (F, 4, 4) places sweep f in the scene frame. Only
-    points inside a sweep's `grid` (its ego frame) can get its vote. protect_dilation: voxels (Chebyshev)
-    around the sweep's occupied voxels in which it does not vote (0 = only the occupied voxels themselves);
-    those sweeps count against removal, weighted by occupied_ratio (0 = not at all)."""
+    observations: F pairs (observed bits, FREE bits) of sweep f's `lidar_observation` grid in its ego frame on
+    `grid`, as `nuplan_occ.voxel.free_space.packed_observation` packs them (any sequence, each read once; the
+    returns' voxels are the observed ones that are not free); T_scene_from_ego (F, 4, 4) places sweep f in the
+    scene frame. Only points inside a sweep's `grid` (its ego frame) can get its vote. protect_dilation:
+    voxels (Chebyshev) around the sweep's occupied voxels in which it does not vote (0 = only the occupied
+    voxels themselves); those sweeps count against removal, weighted by occupied_ratio (0 = not at all)."""
     points = np.asarray(points_scene, dtype=np.float64)
     T = np.asarray(T_scene_from_ego, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or T.shape != (len(observations), 4, 4):
@@ -125,15 +126,20 @@ def seen_through(
     candidates = candidates[np.argsort(points[candidates, 0], kind="stable")]  # by scene x: a sweep reads a slice
     xs, ys = points[candidates, 0], points[candidates, 1]
     reach = grid.reach
+    voxels = int(np.prod(grid.shape))
     free = np.zeros(len(candidates), dtype=np.int32)
     near_returns = np.zeros(len(candidates), dtype=np.int32)
-    for obs, T_f in zip(observations, T):
-        if tuple(obs.shape) != tuple(grid.shape):
-            raise FbsaInputError(f"seen_through: an observation grid has shape {obs.shape}, expected {grid.shape}")
-        blocked = dilate(obs == OCCUPIED, protect_dilation) if protect_dilation > 0 else obs == OCCUPIED
+    for (observed_bits, free_bits), T_f in zip(observations, T):
+        observed_bits, free_bits = np.asarray(observed_bits, np.uint8), np.asarray(free_bits, np.uint8)
+        if observed_bits.shape != ((voxels + 7) // 8,) or free_bits.shape != observed_bits.shape:
+            raise FbsaInputError(f"seen_through: observation bits of shapes {observed_bits.shape} / {free_bits.shape}, "
+                                 f"expected ({(voxels + 7) // 8},) for a grid of {grid.shape}")
+        blocked = np.unpackbits(observed_bits & ~free_bits, count=voxels).view(bool).reshape(grid.shape)
+        if protect_dilation > 0:
+            blocked = dilate(blocked, protect_dilation)
         ego_x = T_f[0, 3]  # only points within reach of the sweep's ego can be in its grid
         first, last = np.searchsorted(xs, ego_x - reach, "left"), np.searchsorted(xs, ego_x + reach, "right")
         _count_votes(points, candidates, ys, int(first), int(last), float(T_f[1, 3]), reach, invert_transform(T_f),
-                     *grid_args(grid), (obs == FREE).ravel(), blocked.ravel(), free, near_returns)
+                     *grid_args(grid), free_bits, np.packbits(blocked.reshape(-1)), free, near_returns)
     remove[candidates[(free >= min_votes) & (free > occupied_ratio * near_returns)]] = True
     return remove

@@ -88,16 +88,11 @@ def packed_free(observation: np.ndarray) -> np.ndarray:
     return np.packbits((np.asarray(observation) == FREE).reshape(-1))
 
 
-def unpacked_observation(observed_bits: np.ndarray, free_bits: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
-    """The observation grid (uint8 (X, Y, Z), see `lidar_observation`) back from np.packbits of its observed
-    voxels (FREE or OCCUPIED) and its `packed_free` bits: FREE where free, OCCUPIED where observed otherwise."""
-    count = int(np.prod(grid.shape))
-    observed = np.unpackbits(np.asarray(observed_bits, dtype=np.uint8), count=count).view(bool)
-    free = np.unpackbits(np.asarray(free_bits, dtype=np.uint8), count=count).view(bool)
-    observation = np.full(count, UNKNOWN, dtype=np.uint8)
-    observation[observed] = OCCUPIED
-    observation[free] = FREE
-    return observation.reshape(grid.shape)
+def packed_observation(observation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(observed bits, `packed_free` bits) of an observation grid (uint8 (X, Y, Z), see `lidar_observation`):
+    np.packbits of the flat C-order grid of its observed voxels (FREE or OCCUPIED) and of its FREE voxels;
+    OCCUPIED is observed and not free."""
+    return np.packbits((np.asarray(observation) != UNKNOWN).reshape(-1)), packed_free(observation)
 
 
 def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: np.ndarray, free_bits: np.ndarray,

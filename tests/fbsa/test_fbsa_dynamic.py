@@ -11,6 +11,7 @@ from fbsa_world import GROUND, SENSOR_EGO, make_sequence
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.dynamic import dilate, height_above_ground, seen_through
 from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.voxel.free_space import packed_observation
 from nuplan_occ.voxel.visibility import lidar_observation
 
 
@@ -20,7 +21,7 @@ def street():
     T = np.stack([invert_transform(seq.truth[0]) @ T_f for T_f in seq.truth])  # scene = first ego frame
     points = np.vstack([transform_points(T_f, c) for T_f, c in zip(T, seq.clouds)])
     ids = np.concatenate(seq.instance_ids)
-    remove = seen_through(points, [lidar_observation(c, SENSOR_EGO) for c in seq.clouds], T)
+    remove = seen_through(points, [packed_observation(lidar_observation(c, SENSOR_EGO)) for c in seq.clouds], T)
     return seq, points, ids, remove
 
 
@@ -49,13 +50,13 @@ def test_no_votes_no_removal():
     points = np.array([[5.1, 0.1, 1.1], [5.1, 0.1, 0.0]])
     T = np.eye(4)[None]
     ray = SENSOR_EGO + 2.0 * (points[0] - SENSOR_EGO)  # one sweep looks through the upper point: one vote
-    observation = lidar_observation(ray[None], SENSOR_EGO)
+    observation = packed_observation(lidar_observation(ray[None], SENSOR_EGO))
     assert not seen_through(points, [observation], T).any()
     assert seen_through(points, [observation], T, min_votes=1).tolist() == [True, False]
     with pytest.raises(FbsaInputError):
         seen_through(points, [observation], np.eye(4)[None].repeat(2, axis=0))
     with pytest.raises(FbsaInputError):
-        seen_through(points, [observation[:-1]], T)
+        seen_through(points, [(observation[0][:-1], observation[1])], T)
 
 
 def test_helpers():

@@ -12,7 +12,7 @@ from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import LABELS
 from nuplan_occ.voxel.free_space import (clearable_background, crossed_objects, free_in_other_frames, packed_free,
-                                         point_support, unpacked_observation)
+                                         packed_observation, point_support)
 from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN, lidar_observation
 
 GRID = GridSpec(x_min=-5, x_max=5, y_min=-5, y_max=5, z_min=-1, z_max=1, voxel_size=0.25)
@@ -80,8 +80,12 @@ def test_shapes_are_checked():
 def test_an_observation_comes_back_whole_from_its_observed_and_free_bits():
     observation = scene()[4]
     assert {UNKNOWN, FREE, OCCUPIED} <= set(np.unique(observation).tolist())
-    observed_bits = np.packbits((observation != UNKNOWN).reshape(-1))
-    np.testing.assert_array_equal(unpacked_observation(observed_bits, packed_free(observation), GRID), observation)
+    observed_bits, free_bits = packed_observation(observation)
+    observed, free = (np.unpackbits(bits, count=observation.size).reshape(GRID.shape) == 1
+                      for bits in (observed_bits, free_bits))
+    np.testing.assert_array_equal(observed, observation != UNKNOWN)
+    np.testing.assert_array_equal(free, observation == FREE)
+    np.testing.assert_array_equal(observed & ~free, observation == OCCUPIED)
 
 
 def test_object_voxels_the_rays_crossed_are_cleared_unless_they_hold_an_object_point():
