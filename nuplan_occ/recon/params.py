@@ -46,7 +46,8 @@ class ReconParams:
       on the 5 s bench scene it takes 58 % fewer iterations and changes 0.07 % of the occupied
       0.25 m voxels of the background mesh.
     - chunk_size / chunk_overlap: xy tiles (m) solved independently, with this margin of extra
-      points on every side; chunk_size <= 0 disables chunking. chunk_max_points: a chunk holding more
+      points on every side (the margins measured: bench/report-scale.md's notes); chunk_size <= 0 disables
+      chunking. chunk_max_points: a chunk holding more
       points (overlap included) is halved across its longer side until each part fits (0 = no budget):
       the solve's memory grows with its points, and a long scene fills its tiles densely.
 
@@ -71,7 +72,7 @@ class ReconParams:
     pcg_tolerance: float = 1e-3
     pcg_max_iter: int = 2000
     chunk_size: float = 50.0
-    chunk_overlap: float = 2.5
+    chunk_overlap: float = 1.5
     chunk_max_points: int = 600_000
     poisson_depth: int = 10
     poisson_density_quantile: float = 0.05
