@@ -8,8 +8,7 @@ import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import Boxes
-from nuplan_occ.voxel.frame_lookup import flat_voxels
-from nuplan_occ.voxel.traversal import grid_args
+from nuplan_occ.voxel.frame_lookup import point_voxels
 
 MOVING_SPEED_MPS = 0.5
 """An agent whose box speed exceeds this counts as moving."""
@@ -37,7 +36,7 @@ def agent_speed_columns(boxes: Boxes) -> dict[str, float | int]:
 def point_coverage(points_ego: np.ndarray, occupied: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> float:
     """Fraction of a sweep's own returns inside the grid that fall in an occupied voxel or one of its
     26 neighbours (how well the grid explains the sweep); NaN with no returns inside the grid."""
-    flat = flat_voxels(np.ascontiguousarray(points_ego, dtype=np.float64).reshape(-1, 3), *grid_args(grid))
+    flat = point_voxels(points_ego, grid)
     flat = flat[flat >= 0]
     if len(flat) == 0:
         return float("nan")

@@ -25,9 +25,8 @@ import numpy as np
 from nuplan_occ.geometry import yaw_matrix
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import OTHER
-from nuplan_occ.voxel.frame_lookup import flat_voxels
+from nuplan_occ.voxel.frame_lookup import point_voxels
 from nuplan_occ.voxel.ground import estimate_ground_height, ground_height_index, label_background
-from nuplan_occ.voxel.traversal import grid_args
 from nuplan_occ.voxel.voxelize import (
     VoxelizeError, box_voxel_indices, fill_enclosed, in_box, inside_grid, mesh_voxel_grid, mesh_voxel_indices,
 )
@@ -79,7 +78,7 @@ class PlacedObject:
         """(M, 3) unique indices of the grid voxels holding at least one of `own_points` (none if None)."""
         if self.own_points is None or len(self.own_points) == 0:
             return np.zeros((0, 3), dtype=np.int64)
-        flat = flat_voxels(self._to_ego(self.own_points), *grid_args(grid))
+        flat = point_voxels(self._to_ego(self.own_points), grid)
         return _grid_indices_of(np.unique(flat[flat >= 0]), grid)
 
 
@@ -104,7 +103,7 @@ def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_
                         grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     """(N,) bool: points (N, 3, ego frame, m) inside the grid whose voxel holds at least min_count of them or
     an anchor point (anchors (N,) bool or None)."""
-    flat = flat_voxels(np.ascontiguousarray(points_ego, dtype=np.float64).reshape(-1, 3), *grid_args(grid))
+    flat = point_voxels(points_ego, grid)
     inside = flat >= 0
     keep = np.zeros(len(flat), dtype=bool)
     if not inside.any():

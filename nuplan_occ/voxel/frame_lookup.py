@@ -12,6 +12,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from nuplan_occ.grid import GridSpec
+from nuplan_occ.voxel.traversal import grid_args
+
 
 @numba.njit(cache=True)
 def moved_voxel(p, T, lower, voxel_size, shape):
@@ -41,6 +44,11 @@ def flat_voxels(points, lower, voxel_size, shape):
             flat = flat * shape[i] + int(u)
         out[n] = flat
     return out
+
+
+def point_voxels(points: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """(N,) int64: `flat_voxels` of points (N, 3), metres in the grid's own (ego) frame, on `grid`."""
+    return flat_voxels(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), *grid_args(grid))
 
 
 @numba.njit(cache=True)

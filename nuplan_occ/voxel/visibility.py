@@ -34,7 +34,7 @@ import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import CameraCalibration
-from nuplan_occ.voxel.frame_lookup import flat_voxels
+from nuplan_occ.voxel.frame_lookup import point_voxels
 from nuplan_occ.voxel.traversal import grid_args, mark_traversed, mark_visible_to_first_hit
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
@@ -62,7 +62,7 @@ def lidar_observation(points_ego: np.ndarray, origins_ego: np.ndarray, grid: Gri
     origins = np.ascontiguousarray(np.broadcast_to(np.asarray(origins_ego, dtype=np.float64), points.shape))
     obs = np.zeros(int(np.prod(grid.shape)), dtype=np.uint8)
     mark_traversed(origins, np.ascontiguousarray(points), *grid_args(grid), obs, FREE)
-    returns = flat_voxels(np.ascontiguousarray(points), *grid_args(grid))
+    returns = point_voxels(points, grid)
     obs[returns[returns >= 0]] = OCCUPIED
     return obs.reshape(grid.shape)
 
