@@ -7,8 +7,9 @@ reconstructed in its box frame from its aggregate; non-rigid objects (pedestrian
 windowed points, since their shape changes from frame to frame. Objects with fewer than
 `min_object_points` points keep raw points.
 With `carve_objects`, each rigid object of `carve_categories` with points also gets its solid by space
-carving of its box (fbsa.carve: the box minus the space crossed by its own rays and, for
-`through_categories`, by the background rays through its box), which the voxelize stage prefers to its surface.
+carving of its box (fbsa.carve: the box minus the space crossed by its own rays and by the background rays
+through its box that the aggregate stage kept for it, `object_through_rays`: the aggregate's
+`through_categories`), which the voxelize stage prefers to its surface.
 
 Inputs: `background_aggregate`, `objects`, `object_through_rays`.
 Outputs: `background_surface` (Surface, scene frame), `object_surfaces` (track -> Surface, box frame),
@@ -48,17 +49,7 @@ class ReconstructParams:
     every voxel a cell overlaps (measured on the bench build: barrier IoU 0.65 -> 0.73, generic object
     0.60 -> 0.70; vehicles lose with it, 0.49 -> 0.45, as the corners also grow their unobserved parts;
     czone signs too, whose thin panel the corners thicken: scale bench czone_sign IoU 0.548 -> 0.585 at
-    5 s without corners, 0.598 -> 0.710 at 20 s together with voxelize's ground layer).
-    through_categories: carved categories whose solids are also carved by the background rays that cross
-    their box (`object_through_rays`). Those rays start at the merged LiDAR frame's origin, the only sensor
-    pose nuPlan stores, while the rig has five LiDARs mounted up to ~1 m away from it (synthetic rig: roof,
-    A-pillars, front and back bumpers), so a ray that in truth passed over, beside or under an object
-    (between its wheels) is redrawn through it; its error at the object is the origin's error scaled by
-    the share of the ray still ahead of it, large for returns far beyond the object. The object's own rays
-    end on its surface, where that error vanishes, so they keep carving. Measured on the 20 s scale bench
-    (pooled IoU with / without them for every carved class): vehicle 0.642 / 0.655, barrier 0.614 / 0.676,
-    generic object 0.710 / 0.805, czone sign 0.686 / 0.541. Czone signs keep them: their panel stands on
-    thin legs, and only rays through the box show the empty space under the panel."""
+    5 s without corners, 0.598 -> 0.710 at 20 s together with voxelize's ground layer)."""
 
     method: str = "nksr"
     object_method: str = "nksr"
@@ -72,7 +63,6 @@ class ReconstructParams:
     carve_resolution_m: float = 0.1
     min_carve_points: int = 1
     corner_categories: tuple[str, ...] = ("barrier", "generic_object")
-    through_categories: tuple[str, ...] = ("czone_sign",)
 
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
@@ -93,8 +83,7 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
         if carve and len(aggregate.points) >= max(params.min_carve_points, 1):
             cells = carve_object_solid(aggregate.points, aggregate.sensor_origins, aggregate.size,
                                        resolution=params.carve_resolution_m,
-                                       through=inputs["object_through_rays"].get(track)
-                                       if aggregate.category in params.through_categories else None)
+                                       through=inputs["object_through_rays"].get(track))
             observed = cells_holding_points(cells, aggregate.points, aggregate.size, params.carve_resolution_m)
             if aggregate.category in params.corner_categories:
                 object_solids[track] = SolidSamples(cell_corner_points(cells, aggregate.size, params.carve_resolution_m),

@@ -85,6 +85,26 @@ def _insert_keys(table: np.ndarray, used: np.ndarray, keys: np.ndarray, first: n
     return count
 
 
+@numba.njit(cache=True)
+def _holds_keys(table: np.ndarray, used: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """(N,) bool: whether each of keys (N,) int64 is in the open-addressing hash set (table, used) of
+    `_insert_keys`."""
+    bits = 0
+    while (1 << bits) < len(table):
+        bits += 1
+    mask = np.uint64(len(table) - 1)
+    shift = np.uint64(64 - bits)
+    held = np.zeros(len(keys), dtype=np.bool_)
+    for i in range(len(keys)):
+        slot = (np.uint64(keys[i]) * np.uint64(0x9E3779B97F4A7C15)) >> shift
+        while used[slot]:
+            if table[slot] == keys[i]:
+                held[i] = True
+                break
+            slot = (slot + np.uint64(1)) & mask
+    return held
+
+
 def _table_size(keys: int) -> int:
     """Power-of-two hash table length holding `keys` keys at most half full."""
     return 1 << max(4, int(2 * keys - 1).bit_length())
@@ -111,6 +131,10 @@ class KeySet:
         added = _insert_keys(self.table, self.used, keys, first)
         self.count += added
         return first[:added].copy()
+
+    def holds(self, keys: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether each value of keys (N,) int64 is in the set (the same as np.isin against its values)."""
+        return _holds_keys(self.table, self.used, np.ascontiguousarray(keys, dtype=np.int64))
 
 
 def first_of_each_key(keys: np.ndarray) -> np.ndarray:

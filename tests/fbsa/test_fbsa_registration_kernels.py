@@ -90,6 +90,11 @@ def test_voxel_reductions_against_brute_force():
     growing, bounds = KeySet(), [0, 7, 7, 500, 2100, 6000]  # batches that grow the table, and an empty one
     batches = [bounds[i] + growing.new(rng_keys[bounds[i]:bounds[i + 1]]) for i in range(len(bounds) - 1)]
     np.testing.assert_array_equal(np.concatenate(batches), first_of_each_key(rng_keys))
+    queries = np.r_[rng_keys[::7], rng.integers(-2**62, 2**62, 2000), np.arange(-40, 40)]
+    expected = np.isin(queries, rng_keys)
+    assert 0 < expected.sum() < len(queries)  # members and strangers, colliding slots among them
+    np.testing.assert_array_equal(growing.holds(queries), expected)
+    assert not KeySet().holds(np.array([0, 5])).any()
     with pytest.raises(FbsaInputError, match="beyond"):
         voxel_keys(np.array([[3e5, 0.0, 0.0]]), 0.2)
 

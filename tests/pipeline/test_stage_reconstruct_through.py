@@ -1,6 +1,5 @@
-"""stages.reconstruct: background rays through a box carve an object's solid only for `through_categories`."""
+"""stages.reconstruct: the background rays through a box that the aggregate kept for an object carve its solid."""
 
-from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -25,10 +24,10 @@ def inputs():
     return {"background_aggregate": background, "objects": {"t1": car}, "object_through_rays": {"t1": through}}
 
 
-def test_background_rays_through_a_box_carve_only_the_listed_categories():
+def test_background_rays_kept_for_an_object_carve_its_solid():
     params = ReconstructParams(method="none", object_method="none", ground_fill=False)
-    default = run(inputs(), params)["object_solids"]["t1"].points
-    listed = run(inputs(), replace(params, through_categories=("vehicle",)))["object_solids"]["t1"].points
+    default = run({**inputs(), "object_through_rays": {}}, params)["object_solids"]["t1"].points
+    listed = run(inputs(), params)["object_solids"]["t1"].points
     assert len(default) == 2000  # nothing in front of the observed face, so the whole box stays solid
     carved = {tuple(np.round(p, 3)) for p in default} - {tuple(np.round(p, 3)) for p in listed}
     assert carved and all(abs(p[0] - 0.35) < 1e-6 and abs(p[2] - 0.05) < 1e-6 for p in carved)
