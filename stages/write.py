@@ -23,6 +23,7 @@ from nuplan_occ.pipeline.frame_columns import agent_speed_columns, ego_speeds, p
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.storage import FrameRecord
 from nuplan_occ.voxel.box_labels import box_label_columns
+from nuplan_occ.voxel.compose import zero_emptied_objects
 from nuplan_occ.voxel.map_align import MapAlignment
 
 
@@ -59,15 +60,6 @@ def frame_columns(scene, position: int, registration, speeds, outliers: int, map
     return columns
 
 
-def zero_cleared(instance: np.ndarray, flow: np.ndarray, semantics: np.ndarray) -> None:
-    """Set instance ids (X, Y, Z) and flow (X, Y, Z, 3) to 0, in place, in the voxels the visibility stage
-    emptied (semantics 0). The frame's grids end with this stage, so nothing else reads them afterwards."""
-    labeled = np.flatnonzero(instance)  # object voxels are few: only they are looked at
-    stale = np.unravel_index(labeled[semantics.reshape(-1)[labeled] == 0], instance.shape)
-    instance[stale] = 0
-    flow[stale] = 0
-
-
 def prepare(inputs: dict, params: WriteParams) -> dict:
     """Once per scene: `ego_speeds` (F,) m/s of every sweep from its refined pose (`ego_speeds`)."""
     scene = inputs["scene"]
@@ -92,7 +84,7 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
         record.status, record.failure_reason = "failed", frame["failure"]
         return {"record": record}
     grids, semantics = frame["grids"], frame["final_semantics"]
-    zero_cleared(grids.instance, grids.flow, semantics)
+    zero_emptied_objects(grids, semantics)
     arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow, **frame["masks"]}
     record.arrays = {name: arrays[name] for name in params.members if name in arrays}
     columns["qa_point_coverage"] = point_coverage(sweep.xyz, semantics > 0)

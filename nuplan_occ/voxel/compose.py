@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from nuplan_occ.geometry import yaw_matrix
@@ -97,6 +98,27 @@ class FrameGrids:
     ground_height: np.ndarray | None = None
     mover_voxels: int = 0
     object_points: np.ndarray | None = None
+
+
+@numba.njit(cache=True)
+def _zero_emptied(instance, flow, semantics):
+    for v in range(len(instance)):
+        if instance[v] != 0 and semantics[v] == 0:
+            instance[v] = 0
+            for c in range(flow.shape[1]):
+                flow[v, c] = 0
+
+
+def zero_emptied_objects(grids: FrameGrids, semantics: np.ndarray) -> None:
+    """Set the instance id and flow of grids (FrameGrids) to 0, in place, in the object voxels (instance id
+    set) that `semantics` (uint8 (X, Y, Z), e.g. after free-space clearing) left empty (0)."""
+    if grids.instance.shape != semantics.shape or grids.flow.shape != (*semantics.shape, 3):
+        raise VoxelizeError(f"zero_emptied_objects: grids of shape {grids.instance.shape} / {grids.flow.shape}, "
+                            f"semantics {semantics.shape}")
+    if not (grids.instance.flags.c_contiguous and grids.flow.flags.c_contiguous):
+        raise VoxelizeError("zero_emptied_objects: the instance and flow grids must be C-contiguous (set in place)")
+    flow_bits = grids.flow.reshape(-1, 3).view(np.dtype(f"u{grids.flow.itemsize}"))  # 0 bits are +0.0 (numba has no float16)
+    _zero_emptied(grids.instance.reshape(-1), flow_bits, semantics.reshape(-1))
 
 
 def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_count: int,

@@ -1,11 +1,15 @@
 """A frame composed of a ground plane, a moving car box and a static cone."""
 
 import numpy as np
+import pytest
 import trimesh
 
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import OTHER, ROAD, TRAFFIC_CONE, VEHICLE
-from nuplan_occ.voxel.compose import PlacedObject, compose_frame, crowded_or_anchored, object_voxel_indices
+from nuplan_occ.voxel.compose import (
+    FrameGrids, PlacedObject, compose_frame, crowded_or_anchored, object_voxel_indices, zero_emptied_objects,
+)
+from nuplan_occ.voxel.voxelize import VoxelizeError
 
 
 GRID = GridSpec(x_min=-10, x_max=10, y_min=-10, y_max=10, z_min=-3, z_max=5, voxel_size=0.25)
@@ -128,3 +132,19 @@ def test_an_object_holds_its_geometry_voxels_and_the_voxels_of_its_own_points():
     assert {tuple(v) for v in got} == lid_alone | expected and not expected <= lid_alone
     grids = compose_frame(np.zeros((0, 3)), np.zeros((0, 3), int), [empty_surface], None, GRID)
     assert (grids.instance == 5).sum() == len(expected) and (grids.semantics[grids.instance == 5] == TRAFFIC_CONE).all()
+
+
+def test_emptied_object_voxels_lose_their_instance_id_and_flow_and_the_rest_keep_theirs():
+    rng = np.random.default_rng(7)
+    shape = (6, 5, 4)
+    instance = rng.integers(0, 3, shape).astype(np.uint16)
+    flow = rng.normal(size=(*shape, 3)).astype(np.float16)
+    semantics = rng.integers(0, 2, shape).astype(np.uint8) * 7
+    grids = FrameGrids(semantics, instance.copy(), flow.copy(), np.zeros(shape, bool))
+    emptied = (instance != 0) & (semantics == 0)
+    assert 0 < emptied.sum() < (instance != 0).sum()  # some object voxels emptied, some kept
+    zero_emptied_objects(grids, semantics)
+    assert np.array_equal(grids.instance, np.where(emptied, 0, instance))
+    assert np.array_equal(grids.flow, np.where(emptied[..., None], np.float16(0), flow))
+    with pytest.raises(VoxelizeError, match="C-contiguous"):
+        zero_emptied_objects(FrameGrids(semantics, instance.T.copy().T, flow, np.zeros(shape, bool)), semantics)
