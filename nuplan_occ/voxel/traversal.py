@@ -33,9 +33,17 @@ WALK_PAD = 16
 """Crossings are computed in whole runs of this many (a multiple of the SIMD width)."""
 
 
+MAX_VOXELS = 2**31 - 1
+"""The kernels' flat voxel indices are int32: a grid holds fewer voxels than this."""
+
+
 def grid_args(grid: GridSpec) -> tuple[np.ndarray, float, np.ndarray]:
-    """(lower corner (3,) m, voxel size m, shape (3,) int64) of `grid`, as the kernels take them."""
-    return grid.lower, float(grid.voxel_size), np.asarray(grid.shape, dtype=np.int64)
+    """(lower corner (3,) m, voxel size m, shape (3,) int64) of `grid`, as the kernels take them; raises
+    ValueError for a grid of MAX_VOXELS voxels or more."""
+    shape = np.asarray(grid.shape, dtype=np.int64)
+    if int(np.prod(shape)) >= MAX_VOXELS:
+        raise ValueError(f"grid of {grid.shape} voxels: the traversal kernels index fewer than {MAX_VOXELS}")
+    return grid.lower, float(grid.voxel_size), shape
 
 
 @numba.njit(cache=True, inline="always")
@@ -101,9 +109,9 @@ def _walk(oa, rda, k0, dk, n, i0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, n
         step = t + inv
         x, y, z = ox + step * dx, oy + step * dy, oz + step * dz
         inside = (i < n) & (t < t1) & (x >= 0.0) & (x < fx) & (y >= 0.0) & (y < fy) & (z >= 0.0) & (z < fz)
-        v = (int(x) * ny + int(y)) * nz + int(z)
+        v = (np.int32(x) * np.int32(ny) + np.int32(y)) * np.int32(nz) + np.int32(z)  # int32: AVX2 converts 4 at once
         walk_t[base + i] = t
-        walk_v[base + i] = v if inside else -1
+        walk_v[base + i] = v if inside else np.int32(-1)
 
 
 @numba.njit(cache=True)
@@ -112,7 +120,7 @@ def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
     shape: `grid_args`; out: flat grid)."""
     fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
     ny, nz = shape[1], shape[2]
-    walk_t, walk_v = np.empty(WALK_PAD), np.empty(WALK_PAD, np.int64)
+    walk_t, walk_v = np.empty(WALK_PAD), np.empty(WALK_PAD, np.int32)
     for r in range(starts.shape[0]):
         meets, ox, oy, oz, dx, dy, dz, t0, t1, inv = _segment(starts, ends, r, lower, voxel_size, shape)
         if not meets:
@@ -149,7 +157,7 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
     fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
     ny, nz = shape[1], shape[2]
     size = shape.max() + 1 + WALK_PAD
-    walk_t, walk_v = np.empty(3 * size), np.empty(3 * size, np.int64)
+    walk_t, walk_v = np.empty(3 * size), np.empty(3 * size, np.int32)
     for r in range(starts.shape[0]):
         reached[r] = False
         if from_t[r] == np.inf:

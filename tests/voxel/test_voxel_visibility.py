@@ -6,6 +6,7 @@ import pytest
 from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.io.types import CameraCalibration
+from nuplan_occ.voxel.traversal import grid_args
 from nuplan_occ.voxel.visibility import (
     FREE, OCCUPIED, VisibilityError, camera_visibility, lidar_observation, lidar_visibility,
 )
@@ -66,3 +67,9 @@ def test_wall_occludes_what_is_behind_it():
 def test_bad_rays_raise():
     with pytest.raises(VisibilityError):
         lidar_visibility(np.zeros((4, 2)), np.zeros(3), GRID)
+
+
+def test_a_grid_too_large_for_int32_voxel_indices_is_refused():
+    huge = GridSpec(x_min=-500, x_max=500, y_min=-500, y_max=500, z_min=-3, z_max=5, voxel_size=0.05)  # 3.2e10 voxels
+    with pytest.raises(ValueError, match="fewer than"):
+        grid_args(huge)
