@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec, true_indices
 from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
 from nuplan_occ.voxel.traversal import grid_args
@@ -42,11 +41,10 @@ def grid_window(T_points_from_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID) ->
 def point_support(points: np.ndarray, grid: GridSpec = DEFAULT_GRID,
                   T_ego_from_points: np.ndarray | None = None) -> np.ndarray:
     """bool (X, Y, Z): voxels holding at least one of points (N, 3, m), in the ego frame or moved into it by
-    T_ego_from_points (4x4). Points outside the grid's `grid_window` are skipped unmoved."""
+    T_ego_from_points (4x4)."""
     T = np.eye(4) if T_ego_from_points is None else np.asarray(T_ego_from_points, dtype=np.float64)
     support = np.zeros(int(np.prod(grid.shape)), dtype=bool)
-    window_lo, window_hi = grid_window(invert_transform(T), grid)
-    mark_points(np.ascontiguousarray(points, dtype=np.float64), T, *grid_args(grid), window_lo, window_hi, support)
+    mark_points(np.ascontiguousarray(points, dtype=np.float64), T, *grid_args(grid), support)
     return support.reshape(grid.shape)
 
 

@@ -7,7 +7,6 @@ import numpy as np
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points, yaw_matrix
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.voxel.frame_lookup import any_bit_set, flat_voxels, mark_points
-from nuplan_occ.voxel.free_space import grid_window
 from nuplan_occ.voxel.traversal import grid_args
 
 GRID = GridSpec(x_min=-4, x_max=4, y_min=-3, y_max=3, z_min=-1, z_max=1, voxel_size=0.25)
@@ -22,7 +21,7 @@ def test_quarter_turn_maps_voxel_centres_to_the_expected_voxels():
     rng = np.random.default_rng(0)
     idx = np.stack([rng.integers(0, n, 500) for n in GRID.shape], axis=1)
     out = np.zeros(int(np.prod(GRID.shape)), bool)
-    mark_points(centres_of(idx), QUARTER, *grid_args(GRID), np.full(3, -np.inf), np.full(3, np.inf), out)
+    mark_points(centres_of(idx), QUARTER, *grid_args(GRID), out)
     # (x, y, z) -> (-y + 0.5, x - 0.75, z + 0.25) moves voxel centres to voxel centres: with x = -4 + (i + 0.5) / 4
     # and y = -3 + (j + 0.5) / 4, voxel (i, j, k) goes to (29 - j, i - 7, k + 1)
     moved = np.stack([29 - idx[:, 1], idx[:, 0] - 7, idx[:, 2] + 1], axis=1)
@@ -33,20 +32,22 @@ def test_quarter_turn_maps_voxel_centres_to_the_expected_voxels():
     assert np.array_equal(out.reshape(GRID.shape), expected)
 
 
-def test_generic_pose_agrees_with_numpy_transform_and_the_window_skips_only_points_outside_the_grid():
+def test_generic_pose_agrees_with_numpy_transform_in_whole_blocks_and_the_rest():
     rng = np.random.default_rng(1)
     T = make_transform(yaw_matrix(0.37) @ np.array([[1, 0, 0], [0, np.cos(0.02), -np.sin(0.02)], [0, np.sin(0.02), np.cos(0.02)]]),
                        [0.31, -0.17, 0.05])
-    points = rng.uniform(-8, 8, size=(40000, 3)) * [1, 1, 0.3]
+    points = rng.uniform(-8, 8, size=(40005, 3)) * [1, 1, 0.3]  # not a whole number of blocks
     points[:3] = [np.nan, 0, 0], [np.inf, 0, 0], [1e30, 0, 0]
-    window_lo, window_hi = grid_window(invert_transform(T), GRID)
-    assert 0.5 < np.mean(np.any((points[3:] < window_lo) | (points[3:] > window_hi), axis=1)) < 0.95
+    points[-5:] = transform_points(invert_transform(T), GRID.index_to_center(np.array([[0, 0, 0], [31, 23, 7], [3, 4, 5],
+                                                                                         [31, 0, 7], [0, 23, 0]])))
     out = np.zeros(int(np.prod(GRID.shape)), bool)
-    mark_points(points, T, *grid_args(GRID), window_lo, window_hi, out)
+    mark_points(points, T, *grid_args(GRID), out)
     idx, inside = GRID.point_to_index(transform_points(T, points[3:]))
+    assert 0.05 < inside.mean() < 0.5
     expected = np.zeros(GRID.shape, bool)
     expected[tuple(idx[inside].T)] = True
     assert np.array_equal(out.reshape(GRID.shape), expected)
+    assert out.reshape(GRID.shape)[31, 23, 7] and out.reshape(GRID.shape)[0, 23, 0]  # the last points, past the blocks
 
 
 def test_first_hit_lookup_is_the_or_over_frames_in_any_order():
