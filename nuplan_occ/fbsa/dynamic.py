@@ -83,7 +83,7 @@ def _count_votes(points, candidates, ys, first, last, ego_y, reach, T_ego_from_s
     for n in range(first, last):
         if abs(ys[n] - ego_y) > reach:
             continue
-        v = moved_voxel(points[candidates[n]], T_ego_from_scene, lower, voxel_size, shape)
+        v = moved_voxel(points, candidates[n], T_ego_from_scene, lower, voxel_size, shape)
         if v < 0:
             continue
         byte, bit = v >> 3, 7 - (v & 7)

@@ -86,17 +86,13 @@ def _insert_keys(table: np.ndarray, used: np.ndarray, keys: np.ndarray, first: n
 
 
 @numba.njit(cache=True)
-def _holds_keys(table: np.ndarray, used: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    """(N,) bool: whether each of keys (N,) int64 is in the open-addressing hash set (table, used) of
-    `_insert_keys`."""
-    bits = 0
-    while (1 << bits) < len(table):
-        bits += 1
+def _holds_keys(table: np.ndarray, used: np.ndarray, keys: np.ndarray, bits: int) -> np.ndarray:
+    """(N,) bool: whether each of keys (N,) int64 is in the open-addressing hash set (table, used) of 2^bits
+    slots filled by `_insert_keys`."""
     mask = np.uint64(len(table) - 1)
-    shift = np.uint64(64 - bits)
     held = np.zeros(len(keys), dtype=np.bool_)
     for i in range(len(keys)):
-        slot = (np.uint64(keys[i]) * np.uint64(0x9E3779B97F4A7C15)) >> shift
+        slot = _home_slot(keys[i], bits)
         while used[slot]:
             if table[slot] == keys[i]:
                 held[i] = True
@@ -134,7 +130,7 @@ class KeySet:
 
     def holds(self, keys: np.ndarray) -> np.ndarray:
         """(N,) bool: whether each value of keys (N,) int64 is in the set (the same as np.isin against its values)."""
-        return _holds_keys(self.table, self.used, np.ascontiguousarray(keys, dtype=np.int64))
+        return _holds_keys(self.table, self.used, np.ascontiguousarray(keys, dtype=np.int64), len(self.table).bit_length() - 1)
 
 
 def first_of_each_key(keys: np.ndarray) -> np.ndarray:

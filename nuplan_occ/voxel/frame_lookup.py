@@ -1,4 +1,4 @@
-"""Points moved rigidly into a grid's frame and looked up there (numba kernels, one point at a time).
+"""Points moved rigidly into a grid's frame and looked up there (numba kernels).
 
 A point p (metres) is moved by a 4x4 rigid transform T as q_i = ((T_i0 p_0 + T_i1 p_1) + T_i2 p_2) + T_i3,
 in that order, in IEEE double precision: the result does not depend on the machine's BLAS (numpy's
@@ -16,17 +16,17 @@ from nuplan_occ.grid import GridSpec
 from nuplan_occ.voxel.traversal import grid_args
 
 
-@numba.njit(cache=True)
-def moved_voxel(p, T, lower, voxel_size, shape):
-    """Flat index of the voxel holding T p (-1 outside the grid or not finite)."""
-    flat = 0
-    for i in range(3):
-        q = ((T[i, 0] * p[0] + T[i, 1] * p[1]) + T[i, 2] * p[2]) + T[i, 3]
-        u = (q - lower[i]) / voxel_size
-        if not (u >= 0.0 and u < shape[i]):
-            return -1
-        flat = flat * shape[i] + int(u)
-    return flat
+@numba.njit(cache=True, inline="always")
+def moved_voxel(points, n, T, lower, voxel_size, shape):
+    """int32 flat index of the voxel holding T p for p = points[n] (-1 outside the grid or not finite), without
+    branches (in a loop over points it vectorizes; AVX2 converts four doubles to int32 at once)."""
+    x, y, z = points[n, 0], points[n, 1], points[n, 2]
+    ux = ((((T[0, 0] * x + T[0, 1] * y) + T[0, 2] * z) + T[0, 3]) - lower[0]) / voxel_size
+    uy = ((((T[1, 0] * x + T[1, 1] * y) + T[1, 2] * z) + T[1, 3]) - lower[1]) / voxel_size
+    uz = ((((T[2, 0] * x + T[2, 1] * y) + T[2, 2] * z) + T[2, 3]) - lower[2]) / voxel_size
+    inside = (ux >= 0.0) & (ux < shape[0]) & (uy >= 0.0) & (uy < shape[1]) & (uz >= 0.0) & (uz < shape[2])
+    v = (np.int32(ux) * np.int32(shape[1]) + np.int32(uy)) * np.int32(shape[2]) + np.int32(uz)
+    return v if inside else np.int32(-1)
 
 
 @numba.njit(cache=True)
@@ -55,35 +55,21 @@ POINT_BLOCK = 16
 """`mark_points` moves this many points at a time in a branch-free (vectorized) run."""
 
 
-@numba.njit(cache=True, inline="always")
-def _moved_flat(points, n, T, lower, voxel_size, fx, fy, fz, ny, nz):
-    """`moved_voxel` of points[n] without branches, as int32 (-1 outside the grid of (fx, fy, fz) voxels)."""
-    x, y, z = points[n, 0], points[n, 1], points[n, 2]
-    ux = ((((T[0, 0] * x + T[0, 1] * y) + T[0, 2] * z) + T[0, 3]) - lower[0]) / voxel_size
-    uy = ((((T[1, 0] * x + T[1, 1] * y) + T[1, 2] * z) + T[1, 3]) - lower[1]) / voxel_size
-    uz = ((((T[2, 0] * x + T[2, 1] * y) + T[2, 2] * z) + T[2, 3]) - lower[2]) / voxel_size
-    inside = (ux >= 0.0) & (ux < fx) & (uy >= 0.0) & (uy < fy) & (uz >= 0.0) & (uz < fz)
-    v = (np.int32(ux) * ny + np.int32(uy)) * nz + np.int32(uz)  # int32: AVX2 converts four at once
-    return v if inside else np.int32(-1)
-
-
 @numba.njit(cache=True)
 def mark_points(points, T, lower, voxel_size, shape, out):
     """out[v] = True for the voxel v holding T p of every point p of points (N, 3), m (`moved_voxel`'s
     arithmetic); out: flat bool grid of fewer than 2^31 voxels. The voxels of POINT_BLOCK points are computed
     in one branch-free run, then marked."""
     flat = np.empty(POINT_BLOCK, np.int32)
-    fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
-    ny, nz = np.int32(shape[1]), np.int32(shape[2])
     whole = points.shape[0] // POINT_BLOCK * POINT_BLOCK
     for start in range(0, whole, POINT_BLOCK):
         for k in range(POINT_BLOCK):
-            flat[k] = _moved_flat(points, start + k, T, lower, voxel_size, fx, fy, fz, ny, nz)
+            flat[k] = moved_voxel(points, start + k, T, lower, voxel_size, shape)
         for k in range(POINT_BLOCK):
             if flat[k] >= 0:
                 out[flat[k]] = True
     for n in range(whole, points.shape[0]):
-        v = _moved_flat(points, n, T, lower, voxel_size, fx, fy, fz, ny, nz)
+        v = moved_voxel(points, n, T, lower, voxel_size, shape)
         if v >= 0:
             out[v] = True
 
@@ -95,7 +81,7 @@ def any_bit_set(points, transforms, bits, lower, voxel_size, shape, out):
     The frames are tried in order and a point stops at the first whose bit is set."""
     for n in range(points.shape[0]):
         for f in range(transforms.shape[0]):
-            v = moved_voxel(points[n], transforms[f], lower, voxel_size, shape)
+            v = moved_voxel(points, n, transforms[f], lower, voxel_size, shape)
             if v >= 0 and (bits[f, v >> 3] >> (7 - (v & 7))) & 1:
                 out[n] = True
                 break
