@@ -61,8 +61,10 @@ def run(inputs: dict, params: FilterParams) -> dict:
     deferred = 0 < params.aggregate_min_sweeps <= len(inputs["scene"].ok_indices()) and params.method != "none"
 
     def filtered():
-        for position, split in enumerate(inputs["splits"]):
-            if split is None or position not in used:
+        splits = inputs["splits"]
+        for position in range(len(splits)):
+            split = splits[position] if position in used else None  # a stored split is read only when used
+            if split is None:
                 removed.append(0)
                 yield None
                 continue

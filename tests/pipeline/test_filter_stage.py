@@ -49,3 +49,27 @@ def test_a_long_scene_leaves_its_test_to_the_aggregate():
     assert deferred["outliers_removed"] == [0, 0]
     assert deferred["aggregate_outliers"] == {"method": params.method, "nb_neighbors": params.nb_neighbors,
                                               "std_ratio": params.std_ratio, "k_sigma": params.k_sigma}
+
+
+class _CountingSplits(list):
+    """The splits as a stored sequence: records which positions were read."""
+
+    def __init__(self, items) -> None:
+        super().__init__(items)
+        self.read: list[int] = []
+
+    def __getitem__(self, k):
+        self.read.append(k)
+        return super().__getitem__(k)
+
+    def __iter__(self):
+        return (self[k] for k in range(len(self)))
+
+
+def test_only_the_background_positions_splits_are_read():
+    rng = np.random.default_rng(0)
+    clouds = [_sweep_background(rng) for _ in range(3)]  # _Scene takes positions 0 and 1 only
+    splits = _CountingSplits(SimpleNamespace(background=SimpleNamespace(xyz=c)) for c in clouds)
+    out = list(run({"scene": _Scene(), "splits": splits}, replace(FilterParams(), aggregate_min_sweeps=2))["background"])
+    assert splits.read == [0, 1]
+    assert np.array_equal(out[0], clouds[0]) and np.array_equal(out[1], clouds[1]) and out[2] is None
