@@ -63,7 +63,7 @@ def run(inputs: dict, params: FilterParams) -> dict:
     def filtered():
         splits = inputs["splits"]
         for position in range(len(splits)):
-            split = splits[position] if position in used else None  # a stored split is read only when used
+            split = splits[position] if position in used else None  # a split is made only where it is used
             if split is None:
                 removed.append(0)
                 yield None

@@ -1,8 +1,10 @@
 """Stage 1, split (FBSA): per sweep, foreground points of each track in its box frame, background
 points outside every enlarged box and outside the ego vehicle; the margin shell goes to neither.
 
-Inputs: `scene`. Outputs: `splits` (sequence aligned with scene.sweeps, None for failed sweeps; an item
-output, made sweep by sweep as the cache stores it and read back one sweep per access by the filter).
+Inputs: `scene`. Outputs: `splits` (sequence aligned with scene.sweeps, None for failed sweeps; each
+sweep's split is made when the filter asks for it and not cached: the filter reads only the sweeps it keeps,
+every other one on long scenes, and splitting a sweep again costs less than storing and reading it back,
+bench/report-scale.md's notes).
 """
 
 from __future__ import annotations
@@ -35,5 +37,5 @@ def run(inputs: dict, params: SplitParams) -> dict:
     return {"splits": MappedSequence(scene.sweeps, split)}
 
 
-STAGE = Stage("split", inputs=("scene",), outputs=("splits",), item_outputs=("splits",), params_type=SplitParams,
-              run=run, code=("nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_kernels"), doc=__doc__ or "")
+STAGE = Stage("split", inputs=("scene",), outputs=("splits",), params_type=SplitParams, run=run,
+              code=("nuplan_occ.fbsa.split", "nuplan_occ.fbsa.box_kernels"), cache=False, doc=__doc__ or "")
