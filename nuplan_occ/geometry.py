@@ -64,7 +64,9 @@ def invert_transform(T: np.ndarray) -> np.ndarray:
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 rigid transform to (N, 3) points; returns float64 (N, 3) in the target frame."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return pts @ T[:3, :3].T + T[:3, 3]
+    moved = pts @ T[:3, :3].T
+    moved += T[:3, 3]  # in place: one (N, 3) array fewer to allocate and fill
+    return moved
 
 
 def rotate_vectors(T: np.ndarray, vectors: np.ndarray) -> np.ndarray:

@@ -128,12 +128,12 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
                                      inputs["registration"].poses, inputs["background_aggregate"], frame["grids"],
                                      semantics, params)
             semantics[clear] = 0
-            cleared = int(clear.sum())
+            cleared = int(np.count_nonzero(clear))
         if params.clear_object_categories:
             classes = tuple(LABELS.box_category_to_id[c] for c in params.clear_object_categories)
             crossed = crossed_objects(semantics, classes, frame["grids"].object_points, own_free, DEFAULT_GRID)
             semantics[crossed] = 0
-            cleared += int(crossed.sum())
+            cleared += int(np.count_nonzero(crossed))
     if inputs["camera_segments"] is not None:
         masks["mask_camera"] = visible_along(semantics > 0, inputs["camera_segments"], DEFAULT_GRID)
     return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}

@@ -88,13 +88,13 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow, **frame["masks"]}
     record.arrays = {name: arrays[name] for name in params.members if name in arrays}
     columns["qa_point_coverage"] = point_coverage(sweep.xyz, semantics > 0)
-    columns["qa_occupied_voxels"] = int((semantics > 0).sum())
+    columns["qa_occupied_voxels"] = int(np.count_nonzero(semantics))
     columns["qa_free_space_cleared"] = int(frame["free_cleared"])
     columns["qa_unboxed_mover_voxels"] = int(grids.mover_voxels)
     columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
                                      scene.instance_ids, semantics, grids.instance))
     if "mask_lidar" in arrays:
-        columns["qa_lidar_observed_fraction"] = float(arrays["mask_lidar"].mean())
+        columns["qa_lidar_observed_fraction"] = np.count_nonzero(arrays["mask_lidar"]) / arrays["mask_lidar"].size
     return {"record": record}
 
 
