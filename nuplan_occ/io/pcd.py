@@ -116,7 +116,9 @@ def read_pcd(buf: bytes, source: str) -> PointCloud:
         )
     records = np.frombuffer(buf, dtype=dtype, count=n, offset=offset)
     with np.errstate(over="ignore", invalid="ignore"):
-        xyz = np.stack([records[axis].astype(np.float64) for axis in "xyz"], axis=1).reshape(n, 3)
+        xyz = np.empty((n, 3))
+        for column, axis in enumerate("xyz"):  # each field straight into its column: no per-axis temporaries
+            xyz[:, column] = records[axis]
         names = records.dtype.names
         intensity = (records["intensity"].astype(np.float32) if "intensity" in names
                      else np.full(n, -1, dtype=np.float32))
