@@ -1,12 +1,14 @@
 """Align the vector map to the LiDAR's painted lines: a 2D rigid correction of the scene's poses against
-the map. Pure (numpy + shapely 2).
+the map (numpy, shapely 2 and numba kernels).
 
 Relative poses after registration agree to about a millimetre, but the scene as a whole can sit a few
 centimetres (synthetic logs) to decimetres (real logs: GNSS/INS error, map survey error) off the map. The
 painted lines are 0.15 m wide, so such an offset moves them to the neighbouring voxels. Paint is far more
 reflective than asphalt (retroreflective beads), so ground returns whose intensity is well above that of
 the ground at the same range mark the painted strips. Aligning them to the map's line geometries by a
-robust 2D point-to-line ICP (x, y, yaw) gives the correction.
+robust 2D point-to-line ICP (x, y, yaw) gives the correction. A point's nearest line is found among the
+line pieces within reach of it (`nuplan_occ.voxel.line_segments`), found once and looked up again only
+for points that moved more than CANDIDATE_SLACK_M since.
 
 Frames: points "ego" are in a sweep's ego frame (metres); "global" is the map's frame (UTM metres). The
 correction C is a 4x4 transform acting in the global frame: T_global_from_ego(corrected) = C @ T_global_from_ego.
@@ -17,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import shapely
 from scipy import ndimage
@@ -24,6 +27,11 @@ from scipy import ndimage
 from nuplan_occ.geometry import transform_points
 from nuplan_occ.io.types import PointCloud
 from nuplan_occ.sequences import MappedSequence
+from nuplan_occ.voxel.line_segments import Pieces, nearest_pieces, pair_distances, signed_offsets
+
+CANDIDATE_SLACK_M = 1.0
+"""Line pieces are looked up this far beyond the gate around the points, so the refinement's moves (at most
+max_offset_m plus its yaw's sweep) rarely need a second lookup."""
 
 
 @dataclass(frozen=True)
@@ -228,46 +236,74 @@ def paint_confirmed(lines: np.ndarray, returns: GroundReturns, width_m: float, m
     return (total >= min_returns) & (bright >= min_bright_fraction * np.maximum(total, 1))
 
 
-def _signed_offsets(lines: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each point xy[k] (K, 2) and line lines[k]: the line's unit normal (K, 2) at the point's foot
-    on it and the point's signed distance along that normal (K,)."""
-    s = shapely.line_locate_point(lines, shapely.points(xy))
-    length = shapely.length(lines)
-    ahead = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.minimum(s + 0.05, length))).reshape(-1, 2)
-    behind = shapely.get_coordinates(shapely.line_interpolate_point(lines, np.maximum(s - 0.05, 0.0))).reshape(-1, 2)
-    foot = shapely.get_coordinates(shapely.line_interpolate_point(lines, s)).reshape(-1, 2)
-    tangent = ahead - behind
-    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-    return normal, np.einsum("ij,ij->i", xy - foot, normal)
+class _NearPieces:
+    """The line pieces near some points as they move: candidate pairs within `radius` of the points where they
+    were last indexed, queried again for points that have moved so far that a piece within the gate could
+    be missing."""
+
+    def __init__(self, pieces: Pieces, xy: np.ndarray, radius: float, gate_m: float):
+        self.pieces, self.gate_m = pieces, gate_m
+        self._index(xy, radius)
+
+    def _index(self, xy: np.ndarray, radius: float) -> None:
+        self.xy, self.radius = xy, radius
+        self.point_index, self.piece_index = self.pieces.candidates(xy, radius)
+
+    def pairs(self, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(point index, piece index): for every point and every line within reach_m of it (<= the indexed
+        radius), the line's nearest piece (the first of equally near ones), sorted by point."""
+        if reach_m > self.radius:
+            raise ValueError(f"pairs within {reach_m} m of points indexed within {self.radius} m")
+        p = self.pieces
+        dist = pair_distances(self.xy, self.point_index, self.piece_index, p.starts, p.ends)
+        near = dist <= reach_m
+        point_index, piece_index, dist = self.point_index[near], self.piece_index[near], dist[near]
+        order = np.lexsort((piece_index, dist, p.line[piece_index], point_index))
+        point_index, piece_index = point_index[order], piece_index[order]
+        line = p.line[piece_index]
+        first = np.r_[True, (point_index[1:] != point_index[:-1]) | (line[1:] != line[:-1])]
+        return point_index[first], piece_index[first]
+
+    def nearest(self, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per point (its position `moved` (N, 2)): the nearest piece and its distance, exact within the gate
+        (-1 and inf where no piece is within the indexed radius)."""
+        motion = float(np.max(np.hypot(*(moved - self.xy).T))) if len(moved) else 0.0
+        if self.gate_m + motion > self.radius:
+            self._index(moved, self.gate_m + CANDIDATE_SLACK_M)
+        p = self.pieces
+        return nearest_pieces(moved, self.point_index, self.piece_index, p.starts, p.ends)
 
 
-def _line_pairs(xy: np.ndarray, lines: np.ndarray, tree: shapely.STRtree, reach_m: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every (point, line) pair closer than reach_m: point index (K,), the line's unit normal (K, 2) at the
-    foot point and the point's signed distance along it (K,). A point moved by a small d then lies at
-    residual + normal . d from that line (the line taken as straight over the move)."""
-    point_index, line_index = tree.query(shapely.points(xy), predicate="dwithin", distance=reach_m)
-    normal, residual = _signed_offsets(lines[line_index], xy[point_index])
-    return point_index, normal, residual
+@numba.njit(cache=True)
+def _inlier_counts(starts: np.ndarray, normal: np.ndarray, residual: np.ndarray, offset_x: np.ndarray,
+                   offset_y: np.ndarray, inlier_m: float) -> np.ndarray:
+    """(O,) per translation (offset_x[o], offset_y[o]): the points (pair groups [starts[g], starts[g + 1]) of
+    the rows of normal (K, 2), residual (K,)) with a pair within inlier_m of its line after the move. The
+    offsets are the inner loop, without branches, so it vectorizes."""
+    counts = np.zeros(len(offset_x), np.int64)
+    hit = np.zeros(len(offset_x), np.int64)
+    for g in range(len(starts) - 1):
+        hit[:] = 0
+        for k in range(starts[g], starts[g + 1]):
+            r, nx, ny = residual[k], normal[k, 0], normal[k, 1]
+            for o in range(len(offset_x)):
+                hit[o] |= abs(r + (nx * offset_x[o] + ny * offset_y[o])) <= inlier_m
+        counts += hit
+    return counts
 
 
 def _best_translation(point_index: np.ndarray, normal: np.ndarray, residual: np.ndarray, search_m: float,
                       step_m: float, inlier_m: float) -> np.ndarray:
     """The translation (2,) on a square grid of half size search_m (step step_m) that puts the most points
-    within inlier_m of a line; among equal counts the smallest translation (directions the lines leave
-    free stay at zero)."""
+    within inlier_m of a line (pairs (point index sorted, the line's unit normal, the point's signed
+    distance); a point moved by a small d then lies at residual + normal . d from that line); among equal
+    counts the smallest translation (directions the lines leave free stay at zero)."""
     axis = np.arange(-search_m, search_m + step_m / 2, step_m)
     offsets = np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2)
-    order = np.argsort(point_index, kind="stable")
-    point_index, normal, residual = point_index[order], normal[order], residual[order]
-    starts = np.flatnonzero(np.r_[True, point_index[1:] != point_index[:-1]])
-    counts = np.zeros(len(offsets))
-    for chunk in np.array_split(np.arange(len(offsets)), max(1, len(offsets) // 64)):
-        inlier = np.abs(residual[:, None] + normal @ offsets[chunk].T) <= inlier_m  # (pairs, chunk)
-        counts[chunk] = np.logical_or.reduceat(inlier, starts, axis=0).sum(axis=0)
-    best = counts.max()
-    tied = np.flatnonzero(counts >= best)
+    starts = np.flatnonzero(np.r_[True, point_index[1:] != point_index[:-1], True])
+    counts = _inlier_counts(starts, normal, residual, np.ascontiguousarray(offsets[:, 0]),
+                            np.ascontiguousarray(offsets[:, 1]), inlier_m)
+    tied = np.flatnonzero(counts >= counts.max())
     return offsets[tied[np.argmin(np.linalg.norm(offsets[tied], axis=1))]]
 
 
@@ -298,9 +334,12 @@ def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_o
     if len(xy) < min_points or len(lines) == 0:
         return MapAlignment(n_points=0, rms_before=float("nan"), rms_after=float("nan"), **refused,
                             reason=f"too few paint points ({len(xy)}) or no painted lines")
-    tree = shapely.STRtree(lines)
-    point_index, normal, residual = _line_pairs(xy, lines, tree, max_offset_m + paint_half_width_m)
-    dist_before = _nearest_distance(tree, xy)
+    pieces = Pieces.of(lines)
+    reach = max_offset_m + paint_half_width_m
+    near = _NearPieces(pieces, xy, max(reach, gate_m + CANDIDATE_SLACK_M), gate_m)
+    point_index, piece_index = near.pairs(reach)
+    normal, residual = signed_offsets(xy[point_index], piece_index, pieces.starts, pieces.ends)
+    dist_before = near.nearest(xy)[1]
     near_before = dist_before <= gate_m
     rms_before = _rms(dist_before[near_before])
     if len(np.unique(point_index)) < min_points:
@@ -312,12 +351,12 @@ def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_o
     anchor = params.copy()
     for _ in range(max(1, iterations)):
         moved = _moved(local, params) + pivot
-        (_, which), dist = tree.query_nearest(shapely.points(moved), return_distance=True, all_matches=False)
-        used = np.asarray(dist) <= gate_m
+        which, dist = near.nearest(moved)
+        used = dist <= gate_m
         if used.sum() < min_points:
             return MapAlignment(n_points=int(used.sum()), rms_before=rms_before, rms_after=float("nan"), **refused,
                                 reason=f"only {int(used.sum())} paint points within {gate_m} m of a line")
-        normal_used, res = _signed_offsets(lines[which[used]], moved[used])
+        normal_used, res = signed_offsets(moved[used], which[used], pieces.starts, pieces.ends)
         arm = moved[used] - pivot - params[:2]  # rotated local offsets
         J = np.stack([normal_used[:, 0], normal_used[:, 1],
                       -arm[:, 1] * normal_used[:, 0] + arm[:, 0] * normal_used[:, 1]], axis=1)
@@ -328,7 +367,7 @@ def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_o
         params = params + step
         if np.abs(step[:2]).max() < 1e-4 and abs(step[2]) < 1e-6:
             break
-    dist_after = _nearest_distance(tree, _moved(local, params) + pivot)
+    dist_after = near.nearest(_moved(local, params) + pivot)[1]
     shift, turn = float(np.hypot(params[0], params[1])), float(np.degrees(abs(params[2])))
     if shift > max_offset_m or turn > max_yaw_deg:
         return MapAlignment(n_points=int(used.sum()), rms_before=rms_before, rms_after=float("nan"), **refused,
@@ -341,12 +380,6 @@ def _moved(local: np.ndarray, params: np.ndarray) -> np.ndarray:
     """Points (N, 2) relative to the pivot, rotated by params[2] and shifted by params[:2]."""
     c, s = np.cos(params[2]), np.sin(params[2])
     return local @ np.array([[c, s], [-s, c]]) + params[:2]
-
-
-def _nearest_distance(tree: shapely.STRtree, xy: np.ndarray) -> np.ndarray:
-    """(N,) distance (m) of each point to its nearest line."""
-    _, dist = tree.query_nearest(shapely.points(xy), return_distance=True, all_matches=False)
-    return np.asarray(dist)
 
 
 def _rms(values: np.ndarray) -> float:
