@@ -36,8 +36,7 @@ from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.sequences import MappedSequence
-from nuplan_occ.voxel.free_space import packed_observation
-from nuplan_occ.voxel.visibility import lidar_observation
+from nuplan_occ.voxel.visibility import lidar_observation_bits
 from stages.visibility import RayObservations, split_observation_bits
 
 
@@ -152,12 +151,12 @@ def cleared_background(background: Sequence, object_boxes: Sequence, position: i
 
 def sweep_observation(scene, position: int, observations: RayObservations, observation_bits: Sequence
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """The `packed_observation` bits of the sweep at `position`'s `lidar_observation` grid: the lidar_rays
+    """The `lidar_observation_bits` of the sweep at `position`: the lidar_rays
     stage's when it is an output frame there, else cast from its returns."""
     token = scene.sweeps[position].token
     if token in observations.tokens:
         return split_observation_bits(observation_bits[observations.row(token)])
-    return packed_observation(lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID))
+    return lidar_observation_bits(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
 
 
 def run(inputs: dict, params: AggregateParams) -> dict:

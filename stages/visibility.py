@@ -8,7 +8,7 @@ occlusion by the frame's (cleared) occupancy.
 Rays start at the merged LiDAR frame's origin (the only sensor pose nuPlan stores).
 Scene pass `lidar_rays` (params section `visibility`): input `scene`; outputs `observations`
 (RayObservations: the tokens of the loaded output frames, one row each) and `observation_bits` (an item
-output, one element per row: that frame's observed grid and its FREE grid (`packed_free`) as packed bits,
+output, one element per row: that frame's observed grid and its FREE grid as packed bits (`lidar_observation_bits`),
 640 KB each, read back when used: no scene stage holds every frame's grids).
 Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate` (points in ascending scene x),
 `observations`, `observation_bits`, frame inputs `grids`, `semantics`; prepared once per scene:
@@ -29,9 +29,9 @@ from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.free_space import (
-    clearable_background, crossed_objects, free_voxels_in_frames, grid_window, packed_observation, point_support,
+    clearable_background, crossed_objects, free_voxels_in_frames, grid_window, point_support,
 )
-from nuplan_occ.voxel.visibility import camera_segments, lidar_observation, visible_along
+from nuplan_occ.voxel.visibility import camera_segments, lidar_observation_bits, visible_along
 
 
 @dataclass(frozen=True)
@@ -81,8 +81,7 @@ def run_rays(inputs: dict, params: VisibilityParams) -> dict:
 
     def observation_bits():  # one frame at a time, while the cache stores them
         for position in positions:
-            observation = lidar_observation(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
-            yield np.concatenate(packed_observation(observation))
+            yield np.concatenate(lidar_observation_bits(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID))
 
     return {"observations": RayObservations([scene.sweeps[p].token for p in positions]),
             "observation_bits": observation_bits()}

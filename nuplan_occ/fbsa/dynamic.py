@@ -107,7 +107,7 @@ def seen_through(
     """bool (M,): the background points (M, 3), scene frame, to remove as dynamic (see module doc).
 
     observations: F pairs (observed bits, FREE bits) of sweep f's `lidar_observation` grid in its ego frame on
-    `grid`, as `nuplan_occ.voxel.free_space.packed_observation` packs them (any sequence, each read once; the
+    `grid`, as `nuplan_occ.voxel.visibility.lidar_observation_bits` gives them (any sequence, each read once; the
     returns' voxels are the observed ones that are not free); T_scene_from_ego (F, 4, 4) places sweep f in the
     scene frame. Only points inside a sweep's `grid` (its ego frame) can get its vote. protect_dilation:
     voxels (Chebyshev) around the sweep's occupied voxels in which it does not vote (0 = only the occupied

@@ -22,7 +22,7 @@ import numpy as np
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec, true_indices
 from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
 from nuplan_occ.voxel.traversal import grid_args
-from nuplan_occ.voxel.visibility import FREE, UNKNOWN
+from nuplan_occ.voxel.visibility import FREE
 
 
 WINDOW_SLACK_M = 1e-6
@@ -82,15 +82,9 @@ def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_poin
 
 def packed_free(observation: np.ndarray) -> np.ndarray:
     """The FREE voxels of an observation grid (uint8 (X, Y, Z), see `lidar_observation`) as np.packbits of
-    the flat C-order grid: 1 bit per voxel (640 KB for the 400 x 400 x 32 grid)."""
+    the flat C-order grid: 1 bit per voxel (640 KB for the 400 x 400 x 32 grid), as the FREE bits of
+    `lidar_observation_bits` (which makes them without the grid)."""
     return np.packbits((np.asarray(observation) == FREE).reshape(-1))
-
-
-def packed_observation(observation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(observed bits, `packed_free` bits) of an observation grid (uint8 (X, Y, Z), see `lidar_observation`):
-    np.packbits of the flat C-order grid of its observed voxels (FREE or OCCUPIED) and of its FREE voxels;
-    OCCUPIED is observed and not free."""
-    return np.packbits((np.asarray(observation) != UNKNOWN).reshape(-1)), packed_free(observation)
 
 
 def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: np.ndarray, free_bits: np.ndarray,

@@ -114,10 +114,23 @@ def _walk(oa, rda, k0, dk, n, i0, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, n
         walk_v[base + i] = v if inside else np.int32(-1)
 
 
+@numba.njit(cache=True, inline="always")
+def _set_bit(bits, v):
+    """Set voxel v's bit in `bits` (np.packbits order: bit 7 - v % 8 of byte v // 8)."""
+    bits[v >> 3] |= np.uint8(128 >> (v & 7))
+
+
 @numba.njit(cache=True)
-def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
-    """out[v] = value for every entry v of the segments starts -> ends ((N, 3) m; lower, voxel_size,
-    shape: `grid_args`; out: flat grid)."""
+def mark_bits(voxels, bits):
+    """Set the bits of the flat voxel indices `voxels` in `bits` (packed as `mark_traversed` packs them)."""
+    for v in voxels:
+        _set_bit(bits, v)
+
+
+@numba.njit(cache=True)
+def mark_traversed(starts, ends, lower, voxel_size, shape, bits):
+    """Set the bit of every entry v of the segments starts -> ends ((N, 3) m; lower, voxel_size, shape:
+    `grid_args`) in `bits`, the flat grid packed 8 voxels a byte as np.packbits packs it."""
     fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
     ny, nz = shape[1], shape[2]
     walk_t, walk_v = np.empty(WALK_PAD), np.empty(WALK_PAD, np.int32)
@@ -127,7 +140,7 @@ def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
             continue
         v = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
         if v >= 0:
-            out[v] = value
+            _set_bit(bits, v)
         for a in range(3):
             oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
             k0, dk, n = _planes(oa, da, t0, t1, shape[a])
@@ -137,7 +150,7 @@ def mark_traversed(starts, ends, lower, voxel_size, shape, out, value):
                       walk_t, walk_v, 0)
                 for m in range(WALK_PAD):
                     if walk_v[m] >= 0:
-                        out[walk_v[m]] = value
+                        _set_bit(bits, walk_v[m])
 
 
 @numba.njit(cache=True)

@@ -35,7 +35,7 @@ import numpy as np
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import CameraCalibration
 from nuplan_occ.voxel.frame_lookup import point_voxels
-from nuplan_occ.voxel.traversal import grid_args, mark_traversed, mark_visible_to_first_hit
+from nuplan_occ.voxel.traversal import grid_args, mark_bits, mark_traversed, mark_visible_to_first_hit
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
 """Values of `lidar_observation`."""
@@ -54,17 +54,29 @@ def _as_points(points: np.ndarray, name: str) -> np.ndarray:
     return p
 
 
+def lidar_observation_bits(points_ego: np.ndarray, origins_ego: np.ndarray,
+                           grid: GridSpec = DEFAULT_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """(observed bits, FREE bits) of `lidar_observation`'s grid, each the flat C-order grid packed as
+    np.packbits packs it (640 KB for the 400 x 400 x 32 grid): its observed voxels (FREE or OCCUPIED) and
+    its FREE ones (OCCUPIED is observed and not free). points_ego (N, 3) returns, origins_ego (N, 3) or (3,)
+    ray origins, metres in the ego frame."""
+    points = _as_points(points_ego, "lidar_observation points_ego")
+    origins = np.ascontiguousarray(np.broadcast_to(np.asarray(origins_ego, dtype=np.float64), points.shape))
+    n_bytes = (int(np.prod(grid.shape)) + 7) // 8
+    crossed, returned = np.zeros(n_bytes, np.uint8), np.zeros(n_bytes, np.uint8)
+    mark_traversed(origins, np.ascontiguousarray(points), *grid_args(grid), crossed)
+    returns = point_voxels(points, grid)
+    mark_bits(returns[returns >= 0], returned)
+    return crossed | returned, crossed & ~returned
+
+
 def lidar_observation(points_ego: np.ndarray, origins_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     """uint8 (X, Y, Z): UNKNOWN 0, FREE 1 (a ray passed through before its return), OCCUPIED 2 (holds a
     return; wins over free). points_ego (N, 3) returns, origins_ego (N, 3) or (3,) ray origins, metres
     in the ego frame."""
-    points = _as_points(points_ego, "lidar_observation points_ego")
-    origins = np.ascontiguousarray(np.broadcast_to(np.asarray(origins_ego, dtype=np.float64), points.shape))
-    obs = np.zeros(int(np.prod(grid.shape)), dtype=np.uint8)
-    mark_traversed(origins, np.ascontiguousarray(points), *grid_args(grid), obs, FREE)
-    returns = point_voxels(points, grid)
-    obs[returns[returns >= 0]] = OCCUPIED
-    return obs.reshape(grid.shape)
+    n = int(np.prod(grid.shape))
+    observed, free = (np.unpackbits(bits, count=n) for bits in lidar_observation_bits(points_ego, origins_ego, grid))
+    return (observed * np.uint8(OCCUPIED) - free).reshape(grid.shape)
 
 
 def lidar_visibility(points_ego: np.ndarray, origins_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:

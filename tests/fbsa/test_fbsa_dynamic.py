@@ -11,8 +11,7 @@ from fbsa_world import GROUND, SENSOR_EGO, make_sequence
 from nuplan_occ.fbsa import FbsaInputError
 from nuplan_occ.fbsa.dynamic import dilate, height_above_ground, seen_through
 from nuplan_occ.geometry import invert_transform, transform_points
-from nuplan_occ.voxel.free_space import packed_observation
-from nuplan_occ.voxel.visibility import lidar_observation
+from nuplan_occ.voxel.visibility import lidar_observation_bits
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +20,7 @@ def street():
     T = np.stack([invert_transform(seq.truth[0]) @ T_f for T_f in seq.truth])  # scene = first ego frame
     points = np.vstack([transform_points(T_f, c) for T_f, c in zip(T, seq.clouds)])
     ids = np.concatenate(seq.instance_ids)
-    remove = seen_through(points, [packed_observation(lidar_observation(c, SENSOR_EGO)) for c in seq.clouds], T)
+    remove = seen_through(points, [lidar_observation_bits(c, SENSOR_EGO) for c in seq.clouds], T)
     return seq, points, ids, remove
 
 
@@ -50,7 +49,7 @@ def test_no_votes_no_removal():
     points = np.array([[5.1, 0.1, 1.1], [5.1, 0.1, 0.0]])
     T = np.eye(4)[None]
     ray = SENSOR_EGO + 2.0 * (points[0] - SENSOR_EGO)  # one sweep looks through the upper point: one vote
-    observation = packed_observation(lidar_observation(ray[None], SENSOR_EGO))
+    observation = lidar_observation_bits(ray[None], SENSOR_EGO)
     assert not seen_through(points, [observation], T).any()
     assert seen_through(points, [observation], T, min_votes=1).tolist() == [True, False]
     with pytest.raises(FbsaInputError):

@@ -11,9 +11,8 @@ import pytest
 from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import LABELS
-from nuplan_occ.voxel.free_space import (clearable_background, crossed_objects, free_in_other_frames, packed_free,
-                                         packed_observation, point_support)
-from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN, lidar_observation
+from nuplan_occ.voxel.free_space import clearable_background, crossed_objects, free_in_other_frames, packed_free, point_support
+from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN, lidar_observation, lidar_observation_bits
 
 GRID = GridSpec(x_min=-5, x_max=5, y_min=-5, y_max=5, z_min=-1, z_max=1, voxel_size=0.25)
 GROUND_Z = -0.86  # inside layer 0 ([-1, -0.75))
@@ -78,9 +77,10 @@ def test_shapes_are_checked():
 
 
 def test_an_observation_comes_back_whole_from_its_observed_and_free_bits():
-    observation = scene()[4]
+    returns, observation = scene()[3:]
     assert {UNKNOWN, FREE, OCCUPIED} <= set(np.unique(observation).tolist())
-    observed_bits, free_bits = packed_observation(observation)
+    observed_bits, free_bits = lidar_observation_bits(returns, np.zeros(3), GRID)
+    np.testing.assert_array_equal(free_bits, packed_free(observation))
     observed, free = (np.unpackbits(bits, count=observation.size).reshape(GRID.shape) == 1
                       for bits in (observed_bits, free_bits))
     np.testing.assert_array_equal(observed, observation != UNKNOWN)
