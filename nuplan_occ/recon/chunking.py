@@ -127,8 +127,8 @@ def chunk_normals(tiles: ChunkTiles, near: np.ndarray, lo: np.ndarray, hi: np.nd
     the ones within NORMAL_HALO_M beyond them (origins_at(indices): (k, 3) origins of the points at those
     indices; knn, cell_m: see `estimate_normals`). float32: the solver averages them per voxel."""
     context = tiles.near(lo, hi, reach + NORMAL_HALO_M / tiles.voxel_size)
-    normals = estimate_normals(tiles.points[context], origins_at(context), knn, cell_m)
-    return normals[np.searchsorted(context, near)].astype(np.float32)
+    return estimate_normals(tiles.points[context], origins_at(near), knn, cell_m,
+                            which=np.searchsorted(context, near)).astype(np.float32)
 
 
 def budgeted_cores(tiles: ChunkTiles, reach: float, max_points: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -34,3 +34,15 @@ def test_cell_normals_take_each_points_own_side():
         normals = estimate_normals(pts, origins, knn=30, cell_m=cell_m)
         assert np.all(np.sign(normals[inner, 2]) == np.sign(pts[inner, 2]))
         assert np.median(np.abs(normals[inner, 2])) > 0.95  # neighbours reach across the slab's 4 cm
+
+
+def test_the_normals_of_some_points_are_those_of_the_whole_estimate():
+    """`which` asks for a subset (here the half of a sphere with x < 0.2, whose cells straddle the cut): every
+    point still serves as a neighbour and a cell's centroid is that of all its points, so the rows equal the
+    whole estimate's."""
+    pts, origins = sphere_scan(np.random.default_rng(5), n=20000, noise=0.005)
+    which = np.flatnonzero(pts[:, 0] < 0.2)
+    for cell_m in (0.0, 0.125):
+        whole = estimate_normals(pts, origins, knn=30, cell_m=cell_m)
+        np.testing.assert_array_equal(estimate_normals(pts, origins[which], knn=30, cell_m=cell_m, which=which),
+                                      whole[which])
