@@ -22,7 +22,6 @@ import numpy as np
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec, true_indices
 from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
 from nuplan_occ.voxel.traversal import grid_args
-from nuplan_occ.voxel.visibility import FREE
 
 
 WINDOW_SLACK_M = 1e-6
@@ -67,7 +66,7 @@ def clearable_background(occupied_background: np.ndarray, support: np.ndarray, g
 def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_points: np.ndarray, own_free_bits: np.ndarray,
                     grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     """bool (X, Y, Z): voxels labeled one of `classes` (ids) that the frame's own rays crossed (set in its
-    `packed_free` bits own_free_bits) and that hold none of the objects' own points (object_points bool
+    FREE bits own_free_bits, `lidar_observation_bits`) and that hold none of the objects' own points (object_points bool
     (X, Y, Z), `FrameGrids.object_points`). An object is where it is at this frame's time, so only this
     frame's rays speak about it; a voxel it only partly fills is crossed by rays that miss it, but usually
     also holds one of its points, which keeps it."""
@@ -80,17 +79,10 @@ def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_poin
                                  np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
 
 
-def packed_free(observation: np.ndarray) -> np.ndarray:
-    """The FREE voxels of an observation grid (uint8 (X, Y, Z), see `lidar_observation`) as np.packbits of
-    the flat C-order grid: 1 bit per voxel (640 KB for the 400 x 400 x 32 grid), as the FREE bits of
-    `lidar_observation_bits` (which makes them without the grid)."""
-    return np.packbits((np.asarray(observation) == FREE).reshape(-1))
-
-
 def free_in_other_frames(centres_ego: np.ndarray, T_other_from_ego: np.ndarray, free_bits: np.ndarray,
                          grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     """(N,) bool: voxel centres (N, 3, this frame's ego frame, m) that lie in a voxel another frame's rays
-    crossed (set in that frame's `packed_free` bits free_bits[f] (F, n_bytes), its grid reached by
+    crossed (set in that frame's FREE bits free_bits[f] (F, n_bytes) of `lidar_observation_bits`, its grid reached by
     T_other_from_ego[f] (F, 4, 4)). The background is static: space any frame saw through holds no
     background, whatever moved there at other times. A centre stops at the first frame that saw through it:
     the cost is (centres x frames) lookups at most."""

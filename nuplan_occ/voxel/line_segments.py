@@ -97,3 +97,43 @@ def signed_offsets(xy: np.ndarray, piece_index: np.ndarray, starts: np.ndarray, 
         normal[k, 0], normal[k, 1] = nx, ny
         residual[k] = (xy[k, 0] - fx) * nx + (xy[k, 1] - fy) * ny
     return normal, residual
+
+
+class NearPieces:
+    """The line pieces near some points as they move: candidate pairs within `radius` of the points where they
+    were last indexed, queried again for points that have moved so far that a piece within the gate could
+    be missing."""
+
+    def __init__(self, pieces: Pieces, xy: np.ndarray, radius: float, gate_m: float, slack_m: float):
+        """xy (N, 2) the points; radius: the first lookup's; gate_m: `nearest` is exact within it; slack_m: a
+        second lookup reaches this far beyond the gate."""
+        self.pieces, self.gate_m, self.slack_m = pieces, gate_m, slack_m
+        self._index(xy, radius)
+
+    def _index(self, xy: np.ndarray, radius: float) -> None:
+        self.xy, self.radius = xy, radius
+        self.point_index, self.piece_index = self.pieces.candidates(xy, radius)
+
+    def pairs(self, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(point index, piece index): for every point and every line within reach_m of it (<= the indexed
+        radius), the line's nearest piece (the first of equally near ones), sorted by point."""
+        if reach_m > self.radius:
+            raise ValueError(f"pairs within {reach_m} m of points indexed within {self.radius} m")
+        p = self.pieces
+        dist = pair_distances(self.xy, self.point_index, self.piece_index, p.starts, p.ends)
+        near = dist <= reach_m
+        point_index, piece_index, dist = self.point_index[near], self.piece_index[near], dist[near]
+        order = np.lexsort((piece_index, dist, p.line[piece_index], point_index))
+        point_index, piece_index = point_index[order], piece_index[order]
+        line = p.line[piece_index]
+        first = np.r_[True, (point_index[1:] != point_index[:-1]) | (line[1:] != line[:-1])]
+        return point_index[first], piece_index[first]
+
+    def nearest(self, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per point (its position `moved` (N, 2)): the nearest piece and its distance, exact within the gate
+        (-1 and inf where no piece is within the indexed radius)."""
+        motion = float(np.max(np.hypot(*(moved - self.xy).T))) if len(moved) else 0.0
+        if self.gate_m + motion > self.radius:
+            self._index(moved, self.gate_m + self.slack_m)
+        p = self.pieces
+        return nearest_pieces(moved, self.point_index, self.piece_index, p.starts, p.ends)

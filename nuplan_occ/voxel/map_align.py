@@ -27,7 +27,7 @@ from scipy import ndimage
 from nuplan_occ.geometry import transform_points
 from nuplan_occ.io.types import PointCloud
 from nuplan_occ.sequences import MappedSequence
-from nuplan_occ.voxel.line_segments import Pieces, nearest_pieces, pair_distances, signed_offsets
+from nuplan_occ.voxel.line_segments import NearPieces, Pieces, signed_offsets
 
 CANDIDATE_SLACK_M = 1.0
 """Line pieces are looked up this far beyond the gate around the points, so the refinement's moves (at most
@@ -236,44 +236,6 @@ def paint_confirmed(lines: np.ndarray, returns: GroundReturns, width_m: float, m
     return (total >= min_returns) & (bright >= min_bright_fraction * np.maximum(total, 1))
 
 
-class _NearPieces:
-    """The line pieces near some points as they move: candidate pairs within `radius` of the points where they
-    were last indexed, queried again for points that have moved so far that a piece within the gate could
-    be missing."""
-
-    def __init__(self, pieces: Pieces, xy: np.ndarray, radius: float, gate_m: float):
-        self.pieces, self.gate_m = pieces, gate_m
-        self._index(xy, radius)
-
-    def _index(self, xy: np.ndarray, radius: float) -> None:
-        self.xy, self.radius = xy, radius
-        self.point_index, self.piece_index = self.pieces.candidates(xy, radius)
-
-    def pairs(self, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """(point index, piece index): for every point and every line within reach_m of it (<= the indexed
-        radius), the line's nearest piece (the first of equally near ones), sorted by point."""
-        if reach_m > self.radius:
-            raise ValueError(f"pairs within {reach_m} m of points indexed within {self.radius} m")
-        p = self.pieces
-        dist = pair_distances(self.xy, self.point_index, self.piece_index, p.starts, p.ends)
-        near = dist <= reach_m
-        point_index, piece_index, dist = self.point_index[near], self.piece_index[near], dist[near]
-        order = np.lexsort((piece_index, dist, p.line[piece_index], point_index))
-        point_index, piece_index = point_index[order], piece_index[order]
-        line = p.line[piece_index]
-        first = np.r_[True, (point_index[1:] != point_index[:-1]) | (line[1:] != line[:-1])]
-        return point_index[first], piece_index[first]
-
-    def nearest(self, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per point (its position `moved` (N, 2)): the nearest piece and its distance, exact within the gate
-        (-1 and inf where no piece is within the indexed radius)."""
-        motion = float(np.max(np.hypot(*(moved - self.xy).T))) if len(moved) else 0.0
-        if self.gate_m + motion > self.radius:
-            self._index(moved, self.gate_m + CANDIDATE_SLACK_M)
-        p = self.pieces
-        return nearest_pieces(moved, self.point_index, self.piece_index, p.starts, p.ends)
-
-
 @numba.njit(cache=True)
 def _inlier_counts(starts: np.ndarray, normal: np.ndarray, residual: np.ndarray, offset_x: np.ndarray,
                    offset_y: np.ndarray, inlier_m: float) -> np.ndarray:
@@ -336,7 +298,7 @@ def align_points_to_lines(points_xy_global: np.ndarray, lines: np.ndarray, max_o
                             reason=f"too few paint points ({len(xy)}) or no painted lines")
     pieces = Pieces.of(lines)
     reach = max_offset_m + paint_half_width_m
-    near = _NearPieces(pieces, xy, max(reach, gate_m + CANDIDATE_SLACK_M), gate_m)
+    near = NearPieces(pieces, xy, max(reach, gate_m + CANDIDATE_SLACK_M), gate_m, CANDIDATE_SLACK_M)
     point_index, piece_index = near.pairs(reach)
     normal, residual = signed_offsets(xy[point_index], piece_index, pieces.starts, pieces.ends)
     dist_before = near.nearest(xy)[1]

@@ -11,12 +11,17 @@ import pytest
 from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import LABELS
-from nuplan_occ.voxel.free_space import clearable_background, crossed_objects, free_in_other_frames, packed_free, point_support
+from nuplan_occ.voxel.free_space import clearable_background, crossed_objects, free_in_other_frames, point_support
 from nuplan_occ.voxel.visibility import FREE, OCCUPIED, UNKNOWN, lidar_observation, lidar_observation_bits
 
 GRID = GridSpec(x_min=-5, x_max=5, y_min=-5, y_max=5, z_min=-1, z_max=1, voxel_size=0.25)
 GROUND_Z = -0.86  # inside layer 0 ([-1, -0.75))
 
+
+def packed_free(observation: np.ndarray) -> np.ndarray:
+    """The FREE voxels of an observation grid as np.packbits of the flat C-order grid (the FREE bits of
+    `lidar_observation_bits`, made here from a grid built by hand)."""
+    return np.packbits((np.asarray(observation) == FREE).reshape(-1))
 
 def scene(sensor_x: float = 0.0):
     """Ground voxels everywhere (layer 0) plus a one-voxel bulge above it at x in [2, 3] (layer 1); rays

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from nuplan_occ.voxel.line_segments import Pieces, nearest_pieces, pair_distances, signed_offsets
-from nuplan_occ.voxel.map_align import _NearPieces
+from nuplan_occ.voxel.line_segments import NearPieces, Pieces, nearest_pieces, pair_distances, signed_offsets
 
 
 def l_shape() -> np.ndarray:
@@ -43,7 +42,7 @@ def test_nearest_piece_distance_and_signed_offset():
 def test_pairs_keep_each_lines_nearest_piece_and_nearest_stays_exact_after_a_long_move():
     pieces = Pieces.of(l_shape())
     xy = np.array([[9.5, 0.4], [-4.0, 0.0]])
-    near = _NearPieces(pieces, xy, radius=1.5, gate_m=0.5)
+    near = NearPieces(pieces, xy, radius=1.5, gate_m=0.5, slack_m=1.0)
 
     point_index, piece_index = near.pairs(1.2)
 
