@@ -136,6 +136,11 @@ class FlatLevels:
     los: np.ndarray
     sizes: np.ndarray
 
+    def subset(self, levels: slice) -> "FlatLevels":
+        """These index volumes restricted to the levels `levels` (a slice of level numbers): design rows made with
+        it hold only those levels' basis functions, under their global coefficient ids."""
+        return FlatLevels(self.volumes, self.starts[levels], self.shapes[levels], self.los[levels], self.sizes[levels])
+
     @classmethod
     def of(cls, hierarchy: VoxelHierarchy) -> "FlatLevels":
         levels = hierarchy.levels

@@ -39,7 +39,7 @@ from nuplan_occ.recon.design import design_matrix, field_values
 from nuplan_occ.recon.gram import normal_equations
 from nuplan_occ.recon.hierarchy import FlatLevels, VoxelHierarchy, unique_voxels
 from nuplan_occ.recon.params import ReconParams
-from nuplan_occ.recon.pcg import jacobi_pcg, to_torch_csr
+from nuplan_occ.recon.pcg import PCGResult, jacobi_pcg, to_torch_csr
 
 FRONT_OFFSETS = (1.0,)
 """Distances t (level-0 voxels) of the front-offset constraints f(ybar + t nbar) = t. One voxel:
@@ -157,6 +157,33 @@ def voxel_statistics(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray
     return VoxelStatistics(occupied, centroid, unit_normal, confidence, sub_centroid, sub_weight)
 
 
+def _solve(design: list[sp.csr_matrix], targets: np.ndarray, ridge: sp.spmatrix,
+           params: ReconParams) -> tuple[PCGResult, int]:
+    """(PCG solution, matrix entries) of min ||G a - y||^2 + a^T ridge a for G = design[0] (taken out of the list,
+    see `normal_equations`) and targets y (float32)."""
+    matrix, rhs = normal_equations(design, targets, ridge)
+    diagonal = torch.from_numpy(matrix.diagonal().astype(np.float32))
+    return jacobi_pcg(to_torch_csr(matrix), diagonal, torch.from_numpy(rhs), params.pcg_tolerance,
+                      params.pcg_max_iter), int(matrix.nnz)
+
+
+def _solve_coarse_first(hierarchy: VoxelHierarchy, levels: FlatLevels, parts: list, targets: np.ndarray,
+                        ridge: sp.csr_matrix, params: ReconParams) -> tuple[torch.Tensor, int, int, float]:
+    """`ReconParams.coarse_first`: the coarsest level's coefficients fit alone, then the finer levels' fit to
+    the targets minus the coarse field; (coefficients (n,) float32, matrix entries, PCG iterations of both, the
+    fine solve's relative residual). A level's ids are contiguous and the coarsest come last."""
+    split, n = hierarchy.levels[-1].offset, hierarchy.num_unknowns
+    coarse = design_matrix(levels.subset(slice(-1, None)), n, parts)
+    coarse = sp.csr_matrix((coarse.data, coarse.indices - np.int32(split), coarse.indptr), shape=(coarse.shape[0], n - split))
+    coarse_result, coarse_nnz = _solve([coarse], targets, ridge[split:, split:], params)
+    remaining = (targets - coarse @ coarse_result.x.numpy()).astype(np.float32)
+    del coarse
+    fine_result, fine_nnz = _solve([design_matrix(levels.subset(slice(0, -1)), split, parts)], remaining,
+                                   ridge[:split, :split], params)
+    return (torch.cat([fine_result.x, coarse_result.x]), coarse_nnz + fine_nnz,
+            coarse_result.iterations + fine_result.iterations, fine_result.relative_residual)
+
+
 def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, params: ReconParams) -> tuple[ImplicitField, SolveStats]:
     """Solve the NKSR-lite field for points (N, 3) and oriented unit normals (N, 3), metres in the
     same frame; `anchor` (3,) metres is the lattice corner (a multiple of the coarsest voxel)."""
@@ -176,15 +203,15 @@ def fit_field(points: np.ndarray, normals: np.ndarray, anchor: np.ndarray, param
     targets = np.concatenate([np.zeros(len(sub_centroid), np.float32),
                               (grad_scale.unsqueeze(1) * unit_normal).T.reshape(-1).numpy().astype(np.float32),
                               (front_scale * steps.repeat_interleave(m0)).numpy().astype(np.float32)])
-    design = [design_matrix(levels, n, [(sub_centroid, value_scale, False), (centroid, grad_scale, True),
-                                        (front, front_scale, False)])]
-    matrix, rhs_values = normal_equations(design, targets, ridge_matrix(hierarchy, params.ridge_weight))
-    rhs = torch.from_numpy(rhs_values)
-    diagonal = torch.from_numpy(matrix.diagonal().astype(np.float32))
-    result = jacobi_pcg(to_torch_csr(matrix), diagonal, rhs, params.pcg_tolerance, params.pcg_max_iter)
-    field = ImplicitField(hierarchy=hierarchy, levels=levels, coefficients=result.x, anchor=np.asarray(anchor, dtype=np.float64), voxel_size=params.voxel_size)
-    stats = SolveStats(
-        points=len(points), voxels=m0, unknowns=hierarchy.num_unknowns, nnz=int(matrix.nnz),
-        iterations=result.iterations, relative_residual=result.relative_residual,
-    )
+    parts = [(sub_centroid, value_scale, False), (centroid, grad_scale, True), (front, front_scale, False)]
+    ridge = ridge_matrix(hierarchy, params.ridge_weight)
+    if params.coarse_first and len(hierarchy.levels) > 1:
+        coefficients, nnz, iterations, residual = _solve_coarse_first(hierarchy, levels, parts, targets, ridge, params)
+    else:
+        result, nnz = _solve([design_matrix(levels, n, parts)], targets, ridge, params)
+        coefficients, iterations, residual = result.x, result.iterations, result.relative_residual
+    field = ImplicitField(hierarchy=hierarchy, levels=levels, coefficients=coefficients,
+                          anchor=np.asarray(anchor, dtype=np.float64), voxel_size=params.voxel_size)
+    stats = SolveStats(points=len(points), voxels=m0, unknowns=n, nnz=nnz, iterations=iterations,
+                       relative_residual=residual)
     return field, stats

@@ -42,6 +42,10 @@ class ReconParams:
       of a box (precision@0.25 0.70 -> 1.00) at no cost on the street scene.
       The value constraints of a level-0 voxel are the centroids of its occupied half-size
       sub-voxels (at most 8), weighted by their point counts (a Nystrom-style cap on N).
+    - coarse_first: solve the coarsest level's coefficients alone first, then the finer levels' against what
+      the coarse field leaves of the targets (two smaller systems; the joint system's cross-level products
+      are most of its assembly), instead of all levels in one system. The rows measured for each are in
+      bench/report-scale.md's notes.
     - pcg_tolerance / pcg_max_iter: Jacobi-PCG stop rule ||r|| <= tol ||b||. 1e-3 rather than 1e-4:
       on the 5 s bench scene it takes 58 % fewer iterations and changes 0.07 % of the occupied
       0.25 m voxels of the background mesh.
@@ -69,6 +73,7 @@ class ReconParams:
     value_weight: float = 1.0
     gradient_weight: float = 1.0
     offset_weight: float = 0.1
+    coarse_first: bool = False
     pcg_tolerance: float = 1e-3
     pcg_max_iter: int = 2000
     chunk_size: float = 50.0

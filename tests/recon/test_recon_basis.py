@@ -129,6 +129,22 @@ def test_design_matrix_holds_the_basis_terms_of_the_hierarchy_part_after_part():
     assert np.allclose(rows[600:], value_rows, atol=1e-6)
 
 
+def test_design_rows_of_level_subsets_split_the_full_rows_by_level():
+    rng = np.random.default_rng(8)
+    occupied = unique_voxels(torch.from_numpy(rng.integers(0, 10, (80, 3))))[0]
+    hierarchy = VoxelHierarchy.build(occupied, 3)
+    n, split = hierarchy.num_unknowns, hierarchy.levels[-1].offset
+    u = torch.from_numpy(rng.uniform(-1, 11, (200, 3)))
+    parts = [(u, torch.from_numpy(rng.uniform(0.5, 2, 200)), False), (u[:50], torch.ones(50, dtype=torch.float64), True)]
+    levels = FlatLevels.of(hierarchy)
+    full = design_matrix(levels, n, parts).toarray()
+    fine = design_matrix(levels.subset(slice(0, -1)), n, parts).toarray()
+    coarse = design_matrix(levels.subset(slice(-1, None)), n, parts).toarray()
+    assert np.all(fine[:, split:] == 0) and np.all(coarse[:, :split] == 0)  # ids stay global
+    assert np.any(coarse[:, split:] != 0) and np.any(fine[:, :split] != 0)
+    assert np.array_equal(fine + coarse, full)
+
+
 def test_lookup_inside_and_beyond_the_index_volume_agree_with_a_dictionary():
     rng = np.random.default_rng(3)
     occupied = unique_voxels(torch.from_numpy(rng.integers(0, 12, (60, 3))))[0]

@@ -131,3 +131,32 @@ def test_point_budget_agrees_with_unchunked():
     metrics = surface_metrics(halved.sample_points(0.05), whole.sample_points(0.05), thresholds=(0.02, 0.05))
     assert metrics["chamfer"] < 0.01
     assert metrics["fscore@0.05"] > 0.99
+
+
+def test_coarse_first_solve_keeps_shapes_signs_and_hole_filling():
+    params = ReconParams(coarse_first=True)
+    rng = np.random.default_rng(8)
+    pts, origins = sphere_scan(rng)
+    sphere = reconstruct(pts, origins, params=params)
+    assert np.abs(np.linalg.norm(sphere.vertices, axis=1) - 1.5).max() < 0.06
+    normals = estimate_normals(pts, origins, params.normal_knn)
+    anchor = lattice_anchor(pts, params)
+    field, stats = fit_field(pts, normals, anchor, params)
+    assert stats.relative_residual <= params.pcg_tolerance
+    probe = pts[:2000] / np.linalg.norm(pts[:2000], axis=1, keepdims=True)
+    for offset, sign in ((0.2, 1.0), (-0.2, -1.0)):
+        values = field.evaluate(torch.from_numpy((pts[:2000] + offset * probe - anchor) / params.voxel_size)).numpy()
+        assert np.mean(np.sign(values) == sign) > 0.99
+        assert abs(np.median(values) * params.voxel_size - offset) < 0.05
+
+    half = np.array([1.0, 0.75, 0.5])
+    pts, origins = box_scan(rng, half)
+    truth, _ = box_scan(rng, half, n_per_m2=4000, noise=0.0)
+    metrics = surface_metrics(reconstruct(pts, origins, params=params).sample_points(0.03), truth)
+    assert metrics["chamfer"] < 0.05 and metrics["precision@0.25"] > 0.97 and metrics["recall@0.25"] > 0.99
+
+    pts, origins = plane_scan(rng, size=6.0, n=20000)
+    hole = np.linalg.norm(pts[:, :2] - [0.5, 0.5], axis=1) < 0.3
+    surface = reconstruct(pts[~hole], origins[~hole], params=params)
+    grid = np.stack(np.meshgrid(np.linspace(0.3, 0.7, 5), np.linspace(0.3, 0.7, 5)), -1).reshape(-1, 2)
+    assert cKDTree(surface.sample_points(0.05)).query(np.column_stack([grid, np.zeros(len(grid))]))[0].max() < 0.05
