@@ -76,7 +76,7 @@ def scene_artifacts(data_root: Path, out: Path) -> list[dict[str, Any]]:
 
     params = default_params(PIPELINE)
     tasks = plan_tasks(resolve_logs(data_root), data_root, data_root / "maps", str(out), default_work_root(str(out)), params)
-    wanted = ("scene", "registration", "object_boxes", "background_surface", "background_aggregate", "objects",
+    wanted = ("scene", "registration", "object_boxes", "background_surface", "scene_frame", "objects",
               "object_surfaces")
     return [run_stages(task, PIPELINE, wanted) for task in tasks]
 
@@ -111,7 +111,7 @@ def paper_method_frame(artifacts: dict, token: str, position: int, layers) -> np
 
     scene, pose = artifacts["scene"], artifacts["registration"].poses[position]
     surface = artifacts["background_surface"]
-    T = invert_transform(pose) @ artifacts["background_aggregate"].T_global_from_scene
+    T = invert_transform(pose) @ artifacts["scene_frame"]
     vertices = [transform_points(T, surface.vertices)]
     labels = [np.full(len(surface.vertices), 1, dtype=np.uint8)]
     faces = [surface.faces]

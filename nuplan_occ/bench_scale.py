@@ -362,7 +362,7 @@ def render_scale_markdown(report: dict, picture: bool = False) -> str:
 
 
 STAGE_ORDER = ["start", "load", "split", "filter", "register", "track", "lidar_rays", "aggregate", "reconstruct",
-               "label_map", "voxelize", "label", "visibility", "write", "done"]
+               "support", "label_map", "voxelize", "label", "visibility", "write", "done"]
 
 RECORDED_BASELINE = {
     "text": "Issue #16 (filed 2026-12-01 against commit 4ae3972): 10 s `city` scene (100 output frames, "

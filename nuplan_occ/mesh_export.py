@@ -28,7 +28,7 @@ from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.labels import LABELS, OTHER
 from nuplan_occ.storage.metadata import read_metadata
 
-SURFACE_ARTIFACTS = ("scene", "registration", "object_boxes", "background_aggregate", "background_surface",
+SURFACE_ARTIFACTS = ("scene", "registration", "object_boxes", "scene_frame", "background_surface",
                      "object_surfaces")
 
 
@@ -48,7 +48,7 @@ def _colored(vertices: np.ndarray, faces: np.ndarray, class_id: int) -> trimesh.
 def scene_meshes(artifacts: dict, token: str | None) -> tuple[dict[str, trimesh.Trimesh], dict]:
     """Named meshes of one scene in its scene frame (see module docstring) and the frame they show."""
     scene, poses = artifacts["scene"], artifacts["registration"].poses
-    T_global_from_scene = artifacts["background_aggregate"].T_global_from_scene
+    T_global_from_scene = artifacts["scene_frame"]
     ok = set(scene.ok_indices())
     outputs = [i for i, sweep in enumerate(scene.sweeps) if sweep.is_output and i in ok]
     position = next((i for i in outputs if scene.sweeps[i].token == token), outputs[0])

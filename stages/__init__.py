@@ -1,11 +1,12 @@
 """The build DAG, top to bottom. Each module declares one Stage: inputs, outputs, typed params, and the
 pure functions of `nuplan_occ` it calls.
 
-    scene stages: load -> split -> filter -> register -> track -> lidar_rays -> aggregate -> reconstruct -> label_map
+    scene stages: load -> split -> filter -> register -> track -> lidar_rays -> aggregate -> reconstruct -> support
+                  -> label_map
     frame stages, streamed frame by frame: voxelize -> label -> visibility -> write
 """
 
-from stages import aggregate, filter, label, load, reconstruct, register, split, track, visibility, voxelize, write
+from stages import aggregate, filter, label, load, reconstruct, register, split, support, track, visibility, voxelize, write
 
 PIPELINE = [
     load.STAGE,
@@ -16,6 +17,7 @@ PIPELINE = [
     visibility.RAYS_STAGE,
     aggregate.STAGE,
     reconstruct.STAGE,
+    support.STAGE,
     label.MAP_STAGE,
     voxelize.STAGE,
     label.STAGE,

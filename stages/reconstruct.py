@@ -12,7 +12,8 @@ through its box that the aggregate stage kept for it, `object_through_rays`: the
 `through_categories`), which the voxelize stage prefers to its surface.
 
 Inputs: `background_aggregate`, `objects`, `object_through_rays`.
-Outputs: `background_surface` (Surface, scene frame), `object_surfaces` (track -> Surface, box frame),
+Outputs: `background_surface` (Surface, scene frame), `scene_frame` (T_global_from_scene (4, 4) of that scene
+frame, the aggregate's), `object_surfaces` (track -> Surface, box frame),
 `object_solids` (track -> SolidSamples: points sampling the solid lattice cells, box frame, m: their
 centres, or their corners for `corner_categories`; and which samples' cells hold an observed point).
 """
@@ -98,11 +99,12 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
             object_surfaces[track] = reconstruct(aggregate.points, aggregate.sensor_origins,
                                                  method=params.object_method, frame="box",
                                                  params=ReconParams(mask_distance=params.object_mask_distance_m))
-    return {"background_surface": background_surface, "object_surfaces": object_surfaces,
-            "object_solids": object_solids}
+    return {"background_surface": background_surface, "scene_frame": background.T_global_from_scene,
+            "object_surfaces": object_surfaces, "object_solids": object_solids}
 
 
 STAGE = Stage("reconstruct", inputs=("background_aggregate", "objects", "object_through_rays"),
-              outputs=("background_surface", "object_surfaces", "object_solids"), params_type=ReconstructParams,
+              outputs=("background_surface", "scene_frame", "object_surfaces", "object_solids"),
+              params_type=ReconstructParams,
               run=run,
               code=("nuplan_occ.recon", "nuplan_occ.fbsa.carve", "nuplan_occ.fbsa.ground_fill"), doc=__doc__ or "")

@@ -10,8 +10,9 @@ Scene pass `lidar_rays` (params section `visibility`): input `scene`; outputs `o
 (RayObservations: the tokens of the loaded output frames, one row each) and `observation_bits` (an item
 output, one element per row: that frame's observed grid and its FREE grid as packed bits (`lidar_observation_bits`),
 640 KB each, read back when used: no scene stage holds every frame's grids).
-Frame stage `visibility`: inputs `scene`, `registration`, `background_aggregate` (points in ascending scene x),
-`observations`, `observation_bits`, frame inputs `grids`, `semantics`; prepared once per scene:
+Frame stage `visibility`: inputs `scene`, `registration`, `observations`, `observation_bits`, `background_support`
+(the support stage's: each row's voxels holding aggregated background points), frame inputs `grids`, `semantics`;
+prepared once per scene:
 `camera_segments` (the cameras' rays) and, with free_space_other_frames, `free_bits` (every row's FREE bits,
 so a frame can use the other frames' free space without holding their grids); frame outputs
 `masks` ({"mask_lidar", "mask_camera"}), `final_semantics` (`semantics` with the cleared voxels empty),
@@ -28,9 +29,7 @@ from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.voxel.free_space import (
-    clearable_background, crossed_objects, free_voxels_in_frames, grid_window, point_support,
-)
+from nuplan_occ.voxel.free_space import clearable_background, crossed_objects, free_voxels_in_frames
 from nuplan_occ.voxel.visibility import camera_segments, lidar_observation_bits, visible_along
 
 
@@ -94,14 +93,10 @@ def split_observation_bits(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def prepare(inputs: dict, params: VisibilityParams) -> dict:
     """Once per scene: the rays of the scene's cameras (`camera_segments`; None without camera masks) and
-    every output frame's FREE bits (`free_bits` (F, n_bytes); None unless free_space_other_frames), after
-    checking that the aggregate's points are in ascending scene x (`background_support`)."""
+    every output frame's FREE bits (`free_bits` (F, n_bytes); None unless free_space_other_frames)."""
     scene = inputs["scene"]
-    clearing = params.lidar and params.clear_free_space
-    if clearing and np.any(np.diff(inputs["background_aggregate"].points[:, 0]) < 0):
-        raise ValueError("visibility: the background aggregate's points are not in ascending scene x")
     free_bits = None
-    if clearing and params.free_space_other_frames:
+    if params.lidar and params.clear_free_space and params.free_space_other_frames:
         free_bits = np.empty((len(inputs["observations"].tokens), (int(np.prod(DEFAULT_GRID.shape)) + 7) // 8), np.uint8)
         for row in range(len(free_bits)):  # one element read back at a time
             free_bits[row] = split_observation_bits(inputs["observation_bits"][row])[1]
@@ -119,13 +114,15 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     masks, cleared = {}, 0
     if params.lidar:
         observations = inputs["observations"]
-        own_observed, own_free = split_observation_bits(inputs["observation_bits"][observations.row(token)])
+        row = observations.row(token)
+        own_observed, own_free = split_observation_bits(inputs["observation_bits"][row])
         observed = np.unpackbits(own_observed, count=int(np.prod(DEFAULT_GRID.shape)))
         masks["mask_lidar"] = observed.reshape(DEFAULT_GRID.shape).astype(bool)
         if params.clear_free_space:
-            clear = free_space_clear(position, token, scene, observations, inputs["free_bits"], own_free,
-                                     inputs["registration"].poses, inputs["background_aggregate"], frame["grids"],
-                                     semantics, params)
+            support = np.unpackbits(inputs["background_support"][row], count=int(np.prod(DEFAULT_GRID.shape)))
+            clear = free_space_clear(position, row, scene, observations, inputs["free_bits"], own_free,
+                                     inputs["registration"].poses, support.view(bool).reshape(DEFAULT_GRID.shape),
+                                     frame["grids"], semantics, params)
             semantics[clear] = 0
             cleared = int(np.count_nonzero(clear))
         if params.clear_object_categories:
@@ -138,25 +135,14 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
     return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}
 
 
-def background_support(points_scene: np.ndarray, T_scene_from_ego: np.ndarray) -> np.ndarray:
-    """`point_support` in the frame's grid of the aggregate's points (M, 3), scene frame, m, in ascending scene
-    x: only the slice within the x range of the grid's `grid_window` in the scene frame is looked at."""
-    xs = points_scene[:, 0]
-    window_lo, window_hi = grid_window(T_scene_from_ego, DEFAULT_GRID)
-    near = slice(np.searchsorted(xs, window_lo[0]), np.searchsorted(xs, window_hi[0], "right"))
-    return point_support(points_scene[near], DEFAULT_GRID, invert_transform(T_scene_from_ego))
-
-
-def free_space_clear(position: int, token: str, scene, observations: RayObservations, free_bits: np.ndarray | None,
-                     own_free: np.ndarray, poses: np.ndarray, background, grids, semantics: np.ndarray,
+def free_space_clear(position: int, own: int, scene, observations: RayObservations, free_bits: np.ndarray | None,
+                     own_free: np.ndarray, poses: np.ndarray, support: np.ndarray, grids, semantics: np.ndarray,
                      params: VisibilityParams) -> np.ndarray:
     """bool grid of the frame's background voxels to clear (nuplan_occ.voxel.free_space): crossed by its own
-    rays (own_free: its FREE bits) or, with free_space_other_frames, by another output frame's (free_bits:
-    every row's)."""
-    support = background_support(background.points, invert_transform(background.T_global_from_scene) @ poses[position])
+    rays (own_free: its FREE bits; own: its row of `observations`) or, with free_space_other_frames, by another
+    output frame's (free_bits: every row's), and holding no aggregated background point (support: bool grid)."""
     candidates = clearable_background(grids.occupied_background & (semantics > 0), support, grids.ground_height,
                                       DEFAULT_GRID, params.free_space_ground_margin_m)
-    own = observations.row(token)
     if params.free_space_other_frames:
         position_of = {sweep.token: i for i, sweep in enumerate(scene.sweeps)}
         bits = free_bits
@@ -171,7 +157,7 @@ RAYS_STAGE = Stage("lidar_rays", inputs=("scene",), outputs=("observations", "ob
                    item_outputs=("observation_bits",), params_type=VisibilityParams,
                    run=run_rays, code=("nuplan_occ.voxel",), doc=__doc__ or "", params_section="visibility")
 
-STAGE = Stage("visibility", inputs=("scene", "registration", "background_aggregate", "observations", "observation_bits",
+STAGE = Stage("visibility", inputs=("scene", "registration", "observations", "observation_bits", "background_support",
                                "grids", "semantics"),
               outputs=("masks", "final_semantics", "free_cleared"), params_type=VisibilityParams,
               run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "", per_frame=True, prepare=prepare)

@@ -5,7 +5,7 @@ background inside current boxes is removed; surfaces are voxelized exactly (no h
 exceed a voxel); solid objects are filled inside their surface. Gives instance ids (stable per log)
 and per-voxel flow. Objects are placed by their corrected boxes (track stage).
 
-Inputs: `scene`, `registration`, `object_boxes`, `background_aggregate`, `background_surface`, `objects`,
+Inputs: `scene`, `registration`, `object_boxes`, `background_surface`, `scene_frame`, `objects`,
 `object_surfaces`, `object_solids`, `frame_movers`; prepared once per scene: `background_tiles` (the background surface
 indexed on x-y tiles, so a frame's crop touches only the surface near it). Frame output: `grids` (the
 frame's FrameGrids; background labeled OTHER here), or `failure` for a sweep that did not load.
@@ -124,7 +124,7 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
         return {"failure": sweep.failure or "frame was not built"}
     ok_position = scene.ok_indices().index(position)
     T_ego_from_global = invert_transform(inputs["registration"].poses[position])
-    T_ego_from_scene = T_ego_from_global @ inputs["background_aggregate"].T_global_from_scene
+    T_ego_from_scene = T_ego_from_global @ inputs["scene_frame"]
     vertices, faces = inputs["background_tiles"].crop(T_ego_from_scene, DEFAULT_GRID.lower - params.crop_margin_m,
                                                       DEFAULT_GRID.upper + params.crop_margin_m)
     objects = placed_objects(scene, inputs["object_boxes"][position], ok_position, inputs["objects"],
@@ -170,7 +170,7 @@ def paint_empty(grids: FrameGrids, movers: MoverVoxels) -> int:
 
 
 STAGE = Stage("voxelize",
-              inputs=("scene", "registration", "object_boxes", "background_aggregate", "background_surface", "objects",
+              inputs=("scene", "registration", "object_boxes", "background_surface", "scene_frame", "objects",
                       "object_surfaces", "object_solids", "frame_movers"),
               outputs=("grids",), params_type=VoxelizeParams, run=run, code=("nuplan_occ.voxel", "nuplan_occ.fbsa.voxel_reduce"),
               doc=__doc__ or "",

@@ -134,6 +134,9 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
     def stream_frames() -> list[dict]:
         from nuplan_occ.storage import DatasetWriter
 
+        scene_inputs = {name for stage in frame_stages for name in stage.inputs if name not in frame_artifacts}
+        for name in sorted(scene_inputs, key=lambda n: pipeline.index(producer[n]) if n in producer else -1):
+            obtain(name)  # in pipeline order, so an artifact only earlier stages read is dropped early
         inputs = [{name: obtain(name) for name in stage.inputs if name not in frame_artifacts} for stage in frame_stages]
         for k, stage in enumerate(frame_stages):
             if stage.prepare is not None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec, true_indices
 from nuplan_occ.voxel.frame_lookup import any_bit_set, mark_points
 from nuplan_occ.voxel.traversal import grid_args
@@ -45,6 +46,17 @@ def point_support(points: np.ndarray, grid: GridSpec = DEFAULT_GRID,
     support = np.zeros(int(np.prod(grid.shape)), dtype=bool)
     mark_points(np.ascontiguousarray(points, dtype=np.float64), T, *grid_args(grid), support)
     return support.reshape(grid.shape)
+
+
+def sorted_point_support(points_scene: np.ndarray, T_scene_from_ego: np.ndarray,
+                         grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """`point_support` in the grid of the ego frame T_scene_from_ego (4x4) of points (M, 3), scene frame, m, in
+    ascending scene x: only the slice within the x range of the grid's `grid_window` in the scene frame is
+    looked at."""
+    xs = points_scene[:, 0]
+    window_lo, window_hi = grid_window(T_scene_from_ego, grid)
+    near = slice(np.searchsorted(xs, window_lo[0]), np.searchsorted(xs, window_hi[0], "right"))
+    return point_support(points_scene[near], grid, invert_transform(T_scene_from_ego))
 
 
 def clearable_background(occupied_background: np.ndarray, support: np.ndarray, ground_height: np.ndarray | None,

@@ -1,11 +1,11 @@
-"""stages.visibility.background_support: the support of an x-sorted scene aggregate in a frame's grid, from the
+"""nuplan_occ.voxel.free_space.sorted_point_support: the support of an x-sorted scene aggregate in a frame's grid, from the
 slice of points within the grid's window, equals the voxels of every point moved into the grid (numpy)."""
 
 import numpy as np
 
 from nuplan_occ.geometry import invert_transform, transform_points, yaw_matrix
 from nuplan_occ.grid import DEFAULT_GRID
-from stages.visibility import background_support
+from nuplan_occ.voxel.free_space import sorted_point_support
 
 
 def test_the_window_slice_gives_the_support_of_every_point():
@@ -19,6 +19,6 @@ def test_the_window_slice_gives_the_support_of_every_point():
         idx, inside = DEFAULT_GRID.point_to_index(transform_points(invert_transform(T_scene_from_ego), points))
         expected = np.zeros(DEFAULT_GRID.shape, dtype=bool)
         expected[tuple(idx[inside].T)] = True
-        got = background_support(points, T_scene_from_ego)
+        got = sorted_point_support(points, T_scene_from_ego)
         assert expected.sum() > 10_000  # the grid holds points in every case
         np.testing.assert_array_equal(got, expected)

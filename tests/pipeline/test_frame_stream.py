@@ -123,3 +123,40 @@ def test_a_frame_stage_prepares_once_per_scene_before_its_first_frame(tmp_path):
                 for p in range(FRAMES)]
     DatasetWriter(str(reference), {"params": {}}).write_shard(task.shard_key, expected)
     assert (reference / "shards" / "log-a" / "scene-a.tar").read_bytes() == shard
+
+
+def _aggregate(inputs, params):
+    points = np.zeros((1000, 3))
+    inputs["scene"].alive.append(weakref.ref(points))
+    return {"points": points}
+
+
+def _support(inputs, params):
+    inputs["scene"].calls.append(("support", None, len(inputs["points"])))
+    return {"support": 1}
+
+
+def _map(inputs, params):
+    gc.collect()
+    inputs["scene"].calls.append(("map", None, sum(ref() is not None for ref in inputs["scene"].alive)))
+    return {"layers": 2}
+
+
+def _voxelize_from(inputs, frame, params):
+    return {"grid": np.full(GRID.shape, inputs["layers"] + inputs["support"], dtype=np.uint8)}
+
+
+def test_scene_stages_run_in_pipeline_order_and_release_what_only_earlier_stages_read(tmp_path):
+    """The frame stages ask for `layers` before `support`, yet support runs first (pipeline order), and the
+    points only support reads are released before the map stage runs."""
+    task = SceneTask("db", "sensors", "maps", "log-a", 1, "scene-token", "scene-a", str(tmp_path / "out"),
+                     str(tmp_path / "work"), {})
+    pipeline = [PIPELINE[0],
+                Stage("aggregate", ("scene",), ("points",), _Params, _aggregate, cache=False),
+                Stage("support", ("scene", "points"), ("support",), _Params, _support, cache=False),
+                Stage("map", ("scene",), ("layers",), _Params, _map, cache=False),
+                Stage("voxelize", ("scene", "layers", "support"), ("grid",), _Params, _voxelize_from, per_frame=True),
+                PIPELINE[2]]
+    artifacts = run_stages(task, pipeline, ("rows", "scene"))
+    assert artifacts["scene"].calls == [("support", None, 1000), ("map", None, 0)]
+    assert [r["status"] for r in artifacts["rows"]] == ["ok"] * FRAMES
