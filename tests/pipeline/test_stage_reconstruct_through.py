@@ -20,7 +20,7 @@ def inputs():
     # LiDAR frame's origin is for the rig's other sensors)
     through = (np.array([[0.32, -5.0, 0.05]]), np.array([[0.32, 5.0, 0.05]]))
     background = SimpleNamespace(points=np.zeros((4, 3)), frame_origins=np.zeros((1, 3)),
-                                 frame_ids=np.zeros(4, np.int32))
+                                 frame_ids=np.zeros(4, np.int32), T_global_from_scene=np.eye(4))
     return {"background_aggregate": background, "objects": {"t1": car}, "object_through_rays": {"t1": through}}
 
 
