@@ -7,8 +7,9 @@ Work-folder policy (`--keep-work`), applied only after the scene is published:
              corrected boxes and their points (track), surfaces and solids (reconstruct), and the
              manifest rows (write, so a rerun is answered without work); drop the split and filtered
              point clouds (split, filter), the aggregated clouds (aggregate), the LiDAR observations
-             (lidar_rays), the frames' background support (support) and the map alignment (label_map), which are cheaper to recompute than to store (the frame
-             stages themselves cache only the scene's rows, under write);
+             (lidar_rays), the frames' background support (support) and the map alignment (label_map),
+             which are cheaper to recompute than to store (the frame stages themselves cache only the
+             scene's rows, under write);
     none     drop the scene's whole work folder.
 Cache keys do not depend on the policy: a dropped entry is recomputed when a later stage needs it,
 with identical bytes (stages are deterministic). Per-stage costs: bench/report-manifest.md.
