@@ -11,9 +11,10 @@ NUDGE_VOXELS (two planes crossed within the nudge) are therefore skipped; where 
 planes at exactly the same t (through a lattice edge) both entries give the diagonal voxel, never a
 corner neighbour.
 
-The crossings of one axis are walked in order of t ((k - o) / d is monotonic in k), WALK_PAD at a time
-in branch-free (vectorized) runs; a camera ray's walks stop at its first occupied voxel
-(`mark_visible_to_first_hit`). Every crossing time is computed from its plane index, never accumulated,
+The crossings of one axis are in order of t ((k - o) / d is monotonic in k). `mark_traversed` computes
+them axis by axis, WALK_PAD at a time in branch-free (vectorized) runs; `mark_visible_to_first_hit` merges
+the three axes' crossings in order of t, so a camera ray stops at its first occupied voxel without
+computing any crossing beyond it. Every crossing time is computed from its plane index, never accumulated,
 so the entries do not depend on the walk order. Flat voxel indices are C order over the grid's (X, Y, Z).
 """
 
@@ -153,6 +154,16 @@ def mark_traversed(starts, ends, lower, voxel_size, shape, bits):
                         _set_bit(bits, walk_v[m])
 
 
+@numba.njit(cache=True, inline="always")
+def _crossing(k0, dk, i, n, oa, rda, t1):
+    """t of crossing i (plane k0 + i dk of the axis o_a + t d_a; rda = 1 / d_a) of an axis with n crossings,
+    inf past the last one or at t >= t1."""
+    if i >= n:
+        return np.inf
+    t = ((k0 + i * dk) - oa) * rda
+    return t if t < t1 else np.inf
+
+
 @numba.njit(cache=True)
 def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, from_t, visible, reached,
                               stop_t):
@@ -164,13 +175,10 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
     leaves the grid or ends (within [0, 1]; 0 for one missing the grid); a segment not walked gets reached[r] = False and keeps its stop_t.
     occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
 
-    Per segment, each axis' crossings are recorded WALK_PAD at a time and scanned in order of t until the
-    first blocking one or past the t_hit found so far (the axis with the most crossings first: the others
-    then stop early); the recorded entries with t <= t_hit are then marked."""
+    Per segment, the three axes' crossings are merged in order of t (the next one of each axis computed from
+    its plane index), each entry marked as it is reached, until the first entry past t_hit."""
     fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
     ny, nz = shape[1], shape[2]
-    size = shape.max() + 1 + WALK_PAD
-    walk_t, walk_v = np.empty(3 * size), np.empty(3 * size, np.int32)
     for r in range(starts.shape[0]):
         reached[r] = False
         if from_t[r] == np.inf:
@@ -181,45 +189,36 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
         if not meets or t0 >= t1:
             continue
         t_hit = np.inf
-        v_start = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
-        if v_start >= 0 and occupied[v_start] and t0 >= t_block:
-            t_hit = t0
-        ax, ay, az = abs(dx), abs(dy), abs(dz)
-        a0 = 0 if (ax >= ay and ax >= az) else (1 if ay >= az else 2)
-        walked_x = walked_y = walked_z = 0
-        for j in range(3):
-            a = (a0 + j) % 3
-            oa, da = (ox, dx) if a == 0 else ((oy, dy) if a == 1 else (oz, dz))
-            k0, dk, n = _planes(oa, da, t0, t1, shape[a])
-            rda = 1.0 / da if n else 0.0
-            base = a * size
-            m, stop = 0, False
-            while m < n and not stop:
-                _walk(oa, rda, k0, dk, n, m, t1, inv, ox, oy, oz, dx, dy, dz, fx, fy, fz, ny, nz, walk_t, walk_v, base)
-                end = min(m + WALK_PAD, n)
-                while m < end:
-                    t, v = walk_t[base + m], walk_v[base + m]
-                    if t > t_hit:
-                        stop = True
-                        break
-                    m += 1
-                    if v >= 0 and occupied[v] and t >= t_block:
-                        t_hit, stop = t, True
-                        break
-            if a == 0:
-                walked_x = m
-            elif a == 1:
-                walked_y = m
+        v = _voxel(ox, oy, oz, dx, dy, dz, t0, inv, fx, fy, fz, ny, nz)
+        if v >= 0:
+            visible[v] = True
+            if occupied[v] and t0 >= t_block:
+                t_hit = t0
+        kx, sx, nx = _planes(ox, dx, t0, t1, shape[0])
+        ky, sy, my = _planes(oy, dy, t0, t1, shape[1])
+        kz, sz, mz = _planes(oz, dz, t0, t1, shape[2])
+        rx, ry, rz = (1.0 / dx if nx else 0.0), (1.0 / dy if my else 0.0), (1.0 / dz if mz else 0.0)
+        ix = iy = iz = 0
+        tx, ty, tz = _crossing(kx, sx, 0, nx, ox, rx, t1), _crossing(ky, sy, 0, my, oy, ry, t1), _crossing(kz, sz, 0, mz, oz, rz, t1)
+        while True:
+            if tx <= ty and tx <= tz:
+                t = tx
+                ix += 1
+                tx = _crossing(kx, sx, ix, nx, ox, rx, t1)
+            elif ty <= tz:
+                t = ty
+                iy += 1
+                ty = _crossing(ky, sy, iy, my, oy, ry, t1)
             else:
-                walked_z = m
+                t = tz
+                iz += 1
+                tz = _crossing(kz, sz, iz, mz, oz, rz, t1)
+            if t > t_hit or t == np.inf:
+                break
+            v = _voxel(ox, oy, oz, dx, dy, dz, t, inv, fx, fy, fz, ny, nz)
+            if v >= 0:
+                visible[v] = True
+                if t_hit == np.inf and occupied[v] and t >= t_block:
+                    t_hit = t
         reached[r] = t_hit == np.inf and t1 >= 1.0
         stop_t[r] = min(t_hit, stop_t[r])
-        if v_start >= 0 and t0 <= t_hit:
-            visible[v_start] = True
-        for a in range(3):
-            base = a * size
-            for m in range(walked_x if a == 0 else (walked_y if a == 1 else walked_z)):
-                if walk_t[base + m] > t_hit:
-                    break
-                if walk_v[base + m] >= 0:
-                    visible[walk_v[base + m]] = True
