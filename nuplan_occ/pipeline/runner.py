@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from nuplan_occ.pipeline.cache import StageCache, stable_hash
-from nuplan_occ.pipeline.memory import release_free_memory
+from nuplan_occ.pipeline.memory import release_free_memory, reuse_freed_pages
 from nuplan_occ.pipeline.publish import failed_scene_rows, publish_scene, row_counts
 from nuplan_occ.pipeline.scene import SceneTask, source_fingerprint
 
@@ -184,6 +184,7 @@ def run_scene(task: SceneTask, events: EventSink | None = None) -> SceneResult:
     for a bad scene: its frames are published as failed and the error comes back in the result."""
     from stages import PIPELINE
 
+    reuse_freed_pages()
     result = SceneResult(task.log_name, task.scene_name)
     try:
         rows = run_stages(task, PIPELINE, ("rows",), events, result)["rows"]
