@@ -16,6 +16,13 @@ them axis by axis, WALK_PAD at a time in branch-free (vectorized) runs; `mark_vi
 the three axes' crossings in order of t, so a camera ray stops at its first occupied voxel without
 computing any crossing beyond it. Every crossing time is computed from its plane index, never accumulated,
 so the entries do not depend on the walk order. Flat voxel indices are C order over the grid's (X, Y, Z).
+
+The merged walk also counts the voxel it is in (each crossing steps one axis's cell), and takes that count
+as the entry's voxel where the floating-point evaluation above cannot differ from it: no other axis's
+plane is crossed within the nudge plus SAFE_VOXELS (in that axis's voxels) of the entry, the crossing axis
+moves more than SAFE_VOXELS within the nudge, the entry is not within such a window of the walk's start or
+end, and every cell is inside the grid. Elsewhere (through a lattice edge, grazing a plane, at the border) it
+evaluates the entry as above, so the entries are the same.
 """
 
 from __future__ import annotations
@@ -33,6 +40,10 @@ NUDGE_VOXELS = 1e-6
 WALK_PAD = 16
 """Crossings are computed in whole runs of this many (a multiple of the SIMD width)."""
 
+
+SAFE_VOXELS = 1e-9
+"""Distance (voxels) from a lattice plane beyond which rounding cannot move a coordinate across it (the
+coordinates' rounding is below 1e-12 voxels on grids of up to 2**31 voxels)."""
 
 MAX_VOXELS = 2**31 - 1
 """The kernels' flat voxel indices are int32: a grid holds fewer voxels than this."""
@@ -164,6 +175,22 @@ def _crossing(k0, dk, i, n, oa, rda, t1):
     return t if t < t1 else np.inf
 
 
+@numba.njit(cache=True, inline="always")
+def _cell_before(o, d, t0, k0, n):
+    """The cell index of the axis o + t d before its first crossing (plane k0 of n crossings, see `_planes`),
+    or where the walk starts (t0) when it crosses none."""
+    if n == 0:
+        return math.floor(o + t0 * d)
+    return k0 - 1 if d > 0.0 else k0
+
+
+@numba.njit(cache=True, inline="always")
+def _margin(d, inv):
+    """The t window around a plane crossing of axis velocity d within which an entry is evaluated in floating
+    point: the nudge plus SAFE_VOXELS of that axis (-inf for an axis that does not move: it crosses none)."""
+    return inv + SAFE_VOXELS / abs(d) if d != 0.0 else -np.inf
+
+
 @numba.njit(cache=True)
 def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, from_t, visible, reached,
                               stop_t):
@@ -176,9 +203,10 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
     occupied, visible: flat bool grids; lower, voxel_size, shape: `grid_args`.
 
     Per segment, the three axes' crossings are merged in order of t (the next one of each axis computed from
-    its plane index), each entry marked as it is reached, until the first entry past t_hit."""
+    its plane index), each entry marked as it is reached, until the first entry past t_hit; the entry's voxel
+    is the counted cell where that is safe (module doc)."""
     fx, fy, fz = float(shape[0]), float(shape[1]), float(shape[2])
-    ny, nz = shape[1], shape[2]
+    nx_, ny, nz = shape[0], shape[1], shape[2]
     for r in range(starts.shape[0]):
         reached[r] = False
         if from_t[r] == np.inf:
@@ -198,24 +226,45 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
         ky, sy, my = _planes(oy, dy, t0, t1, shape[1])
         kz, sz, mz = _planes(oz, dz, t0, t1, shape[2])
         rx, ry, rz = (1.0 / dx if nx else 0.0), (1.0 / dy if my else 0.0), (1.0 / dz if mz else 0.0)
+        cx, cy, cz = _cell_before(ox, dx, t0, kx, nx), _cell_before(oy, dy, t0, ky, my), _cell_before(oz, dz, t0, kz, mz)
+        cell = (cx * ny + cy) * nz + cz  # meaningful while every cell is inside the grid
+        wx, wy, wz = _margin(dx, inv), _margin(dy, inv), _margin(dz, inv)
+        safe_end = t1 - max(wx, wy, wz)  # past it, a plane beyond the segment's end may lie within a window
+        evaluate = not (0 <= cx < nx_ and 0 <= cy < ny and 0 <= cz < nz) or (
+            (nx > 0 and inv * abs(dx) <= SAFE_VOXELS) or (my > 0 and inv * abs(dy) <= SAFE_VOXELS)
+            or (mz > 0 and inv * abs(dz) <= SAFE_VOXELS))
+        px = py = pz = t0  # each axis's last crossing (t0 before its first)
         ix = iy = iz = 0
         tx, ty, tz = _crossing(kx, sx, 0, nx, ox, rx, t1), _crossing(ky, sy, 0, my, oy, ry, t1), _crossing(kz, sz, 0, mz, oz, rz, t1)
         while True:
             if tx <= ty and tx <= tz:
-                t = tx
+                t = px = tx
                 ix += 1
                 tx = _crossing(kx, sx, ix, nx, ox, rx, t1)
+                cx += sx
+                cell += sx * ny * nz
+                near = (ty - t < wy) | (t - py < wy) | (tz - t < wz) | (t - pz < wz) | (cx < 0) | (cx >= nx_)
             elif ty <= tz:
-                t = ty
+                t = py = ty
                 iy += 1
                 ty = _crossing(ky, sy, iy, my, oy, ry, t1)
+                cy += sy
+                cell += sy * nz
+                near = (tx - t < wx) | (t - px < wx) | (tz - t < wz) | (t - pz < wz) | (cy < 0) | (cy >= ny)
             else:
-                t = tz
+                t = pz = tz
                 iz += 1
                 tz = _crossing(kz, sz, iz, mz, oz, rz, t1)
+                cz += sz
+                cell += sz
+                near = (tx - t < wx) | (t - px < wx) | (ty - t < wy) | (t - py < wy) | (cz < 0) | (cz >= nz)
             if t > t_hit or t == np.inf:
                 break
-            v = _voxel(ox, oy, oz, dx, dy, dz, t, inv, fx, fy, fz, ny, nz)
+            if near | evaluate | (t > safe_end):  # bitwise: no branch per test
+                v = _voxel(ox, oy, oz, dx, dy, dz, t, inv, fx, fy, fz, ny, nz)
+                evaluate = evaluate or not (0 <= cx < nx_ and 0 <= cy < ny and 0 <= cz < nz)
+            else:
+                v = cell
             if v >= 0:
                 visible[v] = True
                 if t_hit == np.inf and occupied[v] and t >= t_block:

@@ -11,6 +11,7 @@ from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.io.types import CameraCalibration
 from nuplan_occ.voxel import voxelize
+from nuplan_occ.voxel.traversal import grid_args, mark_visible_to_first_hit
 from nuplan_occ.voxel.visibility import camera_rays, camera_visibility, lidar_observation
 
 GRID = GridSpec(x_min=-6, x_max=6, y_min=-5, y_max=5, z_min=-2, z_max=2, voxel_size=0.25)
@@ -135,6 +136,31 @@ def test_camera_visibility_of_one_band_equals_full_traversal(seed):
     got = camera_visibility(occupied, cams, GRID, max_range_m=max_range, near_m=near, range_bands=1)
     assert np.array_equal(got.ravel(), expected)
     assert 0 < got.sum() < got.size
+
+
+def test_first_hit_walk_of_every_kind_of_segment_equals_full_traversal():
+    """The merged walk counts its cell and evaluates entries in floating point only near planes, the border
+    and its ends: segments of every kind, and ones starting or ending a hair before, on or after lattice
+    planes, give exactly the reference's entries, outcomes and stops."""
+    rng = np.random.default_rng(11)
+    starts, ends = random_segments(rng, 600)
+    hair = GRID.voxel_size * rng.choice([-1e-6, -1e-7, -1e-10, 0.0, 1e-10, 1e-7, 1e-6], size=(400, 3))
+    on_planes = np.round(rng.uniform(-6, 6, size=(400, 3)) * [1, 0.8, 0.3] * 4) / 4 + hair
+    starts = np.concatenate([starts, on_planes[:200], rng.uniform(-5, 5, size=(200, 3)) * [1, 1, 0.3]])
+    ends = np.concatenate([ends, rng.uniform(-5, 5, size=(200, 3)) * [1, 1, 0.3], on_planes[200:]])
+    occupied = rng.random(GRID.shape) < 0.02
+    t_from = np.where(rng.random(len(starts)) < 0.3, rng.uniform(0, 0.8, len(starts)), 0.0)
+    t_from[rng.random(len(starts)) < 0.05] = np.inf
+    visible, reached, stop = np.zeros(occupied.size, bool), np.zeros(len(starts), bool), np.full(len(starts), -1.0)
+    mark_visible_to_first_hit(starts, ends, *grid_args(GRID), occupied.ravel(), 0.1, t_from, visible, reached, stop)
+    walked = np.isfinite(t_from)
+    seen, reached_ref, stop_ref = first_hit_entries(starts[walked], ends[walked], occupied, 0.1, t_from[walked])
+    expected = np.zeros(occupied.size, bool)
+    expected[seen] = True
+    assert np.array_equal(visible, expected)
+    assert np.array_equal(reached[walked], reached_ref) and not reached[~walked].any()
+    assert np.array_equal(stop[walked], stop_ref) and np.all(stop[~walked] == -1.0)
+    assert 0 < visible.sum() < visible.size
 
 
 def pixel_cells(cam, step):
