@@ -79,8 +79,8 @@ def _moved_triangles_near(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarr
 
 @dataclass(frozen=True)
 class SurfaceTiles:
-    """The index (see the module doc). vertices (V, 3) float64 m, scene frame; faces (F, 3) int64 ((0, 3): a
-    point set); order: ids of the elements at most tile_m wide (x and y), sorted by tile key (ascending ids
+    """The index (see the module doc). vertices (V, 3) float64 m, scene frame (of a mesh, numbered in the order
+    the tile-sorted triangles first use them); faces (F, 3) int64 ((0, 3): a point set; face ids are the input's); order: ids of the elements at most tile_m wide (x and y), sorted by tile key (ascending ids
     within a tile); keys: their tile keys (tile (tx, ty) -> tx * n_tiles[1] + ty, tiles of tile_m counted
     from `origin` (2,) m); wide: ids of the other elements, wide_low / wide_high (W, 2): their x-y
     bounding boxes (m)."""
@@ -146,4 +146,33 @@ def build_surface_tiles(vertices: np.ndarray, faces: np.ndarray, tile_m: float =
     n_tiles = (int(tile[:, 0].max()) + 1, int(tile[:, 1].max()) + 1) if len(narrow) else (0, 0)
     keys = tile[:, 0] * n_tiles[1] + tile[:, 1]
     order = np.argsort(keys, kind="stable")
+    if len(f):
+        v, f = _numbered_by_first_use(v, f, np.concatenate([narrow[order], wide]))
     return SurfaceTiles(v, f, narrow[order], keys[order], origin, n_tiles, wide, low[wide], high[wide], tile_m)
+
+
+def _numbered_by_first_use(vertices: np.ndarray, faces: np.ndarray, sequence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same mesh with its vertices renumbered in the order the faces `sequence` (every face id once) first use
+    them (unused vertices last, in their order): a crop then reads the vertices of neighbouring triangles from
+    neighbouring rows."""
+    new_of_old = _first_use_numbers(faces, sequence, len(vertices))
+    old_of_new = np.empty_like(new_of_old)
+    old_of_new[new_of_old] = np.arange(len(new_of_old))
+    return vertices[old_of_new], new_of_old[faces]
+
+
+@numba.njit(cache=True)
+def _first_use_numbers(faces: np.ndarray, sequence: np.ndarray, n_vertices: int) -> np.ndarray:
+    """New number of each vertex: its rank by first use in faces[sequence] (unused ones after, in order)."""
+    number = np.full(n_vertices, -1, dtype=np.int64)
+    used = 0
+    for e in sequence:
+        for n in range(3):
+            if number[faces[e, n]] < 0:
+                number[faces[e, n]] = used
+                used += 1
+    for v in range(n_vertices):
+        if number[v] < 0:
+            number[v] = used
+            used += 1
+    return number

@@ -49,6 +49,7 @@ def test_tiled_crop_equals_crop_of_the_whole_surface(points):
     if points:
         faces = np.zeros((0, 3), dtype=np.int64)
     tiles = build_surface_tiles(vertices, faces, tile_m=7.0)
+    assert np.array_equal(tiles.vertices[tiles.faces], vertices[faces])  # renumbered, the same triangles
     for T_scene_from_box in poses(rng, 12):
         T_box_from_scene = np.linalg.inv(T_scene_from_box)
         got_vertices, got_faces = tiles.crop(T_box_from_scene, LOWER, UPPER)
