@@ -58,20 +58,21 @@ POINT_BLOCK = 16
 @numba.njit(cache=True)
 def mark_points(points, T, lower, voxel_size, shape, out):
     """out[v] = True for the voxel v holding T p of every point p of points (N, 3), m (`moved_voxel`'s
-    arithmetic); out: flat bool grid of fewer than 2^31 voxels. The voxels of POINT_BLOCK points are computed
-    in one branch-free run, then marked."""
+    arithmetic); out: a flat bool grid of fewer than 2^31 voxels followed by one spare element, which the points
+    outside the grid set (so the marking needs no branch). The voxels of POINT_BLOCK points are computed in one
+    branch-free run, then marked."""
     flat = np.empty(POINT_BLOCK, np.int32)
+    spare = np.int32(out.shape[0] - 1)
     whole = points.shape[0] // POINT_BLOCK * POINT_BLOCK
     for start in range(0, whole, POINT_BLOCK):
         for k in range(POINT_BLOCK):
-            flat[k] = moved_voxel(points, start + k, T, lower, voxel_size, shape)
+            v = moved_voxel(points, start + k, T, lower, voxel_size, shape)
+            flat[k] = v if v >= 0 else spare
         for k in range(POINT_BLOCK):
-            if flat[k] >= 0:
-                out[flat[k]] = True
+            out[flat[k]] = True
     for n in range(whole, points.shape[0]):
         v = moved_voxel(points, n, T, lower, voxel_size, shape)
-        if v >= 0:
-            out[v] = True
+        out[v if v >= 0 else spare] = True
 
 
 @numba.njit(cache=True)

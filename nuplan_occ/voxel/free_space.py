@@ -43,9 +43,9 @@ def point_support(points: np.ndarray, grid: GridSpec = DEFAULT_GRID,
     """bool (X, Y, Z): voxels holding at least one of points (N, 3, m), in the ego frame or moved into it by
     T_ego_from_points (4x4)."""
     T = np.eye(4) if T_ego_from_points is None else np.asarray(T_ego_from_points, dtype=np.float64)
-    support = np.zeros(int(np.prod(grid.shape)), dtype=bool)
+    support = np.zeros(int(np.prod(grid.shape)) + 1, dtype=bool)  # + the spare element of `mark_points`
     mark_points(np.ascontiguousarray(points, dtype=np.float64), T, *grid_args(grid), support)
-    return support.reshape(grid.shape)
+    return support[:-1].reshape(grid.shape)
 
 
 def sorted_point_support(points_scene: np.ndarray, T_scene_from_ego: np.ndarray,

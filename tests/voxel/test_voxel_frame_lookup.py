@@ -20,8 +20,10 @@ def centres_of(idx):
 def test_quarter_turn_maps_voxel_centres_to_the_expected_voxels():
     rng = np.random.default_rng(0)
     idx = np.stack([rng.integers(0, n, 500) for n in GRID.shape], axis=1)
-    out = np.zeros(int(np.prod(GRID.shape)), bool)
+    out = np.zeros(int(np.prod(GRID.shape)) + 1, bool)  # the grid and the spare element
     mark_points(centres_of(idx), QUARTER, *grid_args(GRID), out)
+    assert out[-1]  # set by the points moved out of the grid
+    out = out[:-1]
     # (x, y, z) -> (-y + 0.5, x - 0.75, z + 0.25) moves voxel centres to voxel centres: with x = -4 + (i + 0.5) / 4
     # and y = -3 + (j + 0.5) / 4, voxel (i, j, k) goes to (29 - j, i - 7, k + 1)
     moved = np.stack([29 - idx[:, 1], idx[:, 0] - 7, idx[:, 2] + 1], axis=1)
@@ -40,8 +42,9 @@ def test_generic_pose_agrees_with_numpy_transform_in_whole_blocks_and_the_rest()
     points[:3] = [np.nan, 0, 0], [np.inf, 0, 0], [1e30, 0, 0]
     points[-5:] = transform_points(invert_transform(T), GRID.index_to_center(np.array([[0, 0, 0], [31, 23, 7], [3, 4, 5],
                                                                                          [31, 0, 7], [0, 23, 0]])))
-    out = np.zeros(int(np.prod(GRID.shape)), bool)
+    out = np.zeros(int(np.prod(GRID.shape)) + 1, bool)
     mark_points(points, T, *grid_args(GRID), out)
+    out = out[:-1]
     idx, inside = GRID.point_to_index(transform_points(T, points[3:]))
     assert 0.05 < inside.mean() < 0.5
     expected = np.zeros(GRID.shape, bool)
