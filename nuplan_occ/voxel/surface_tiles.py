@@ -80,7 +80,8 @@ def _moved_triangles_near(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarr
 @dataclass(frozen=True)
 class SurfaceTiles:
     """The index (see the module doc). vertices (V, 3) float64 m, scene frame (of a mesh, numbered in the order
-    the tile-sorted triangles first use them); faces (F, 3) int64 ((0, 3): a point set; face ids are the input's); order: ids of the elements at most tile_m wide (x and y), sorted by tile key (ascending ids
+    the tile-sorted triangles first use them); faces (F, 3) int64 ((0, 3): a point set; face ids are the
+    input's); order: ids of the elements at most tile_m wide (x and y), sorted by tile key (ascending ids
     within a tile); keys: their tile keys (tile (tx, ty) -> tx * n_tiles[1] + ty, tiles of tile_m counted
     from `origin` (2,) m); wide: ids of the other elements, wide_low / wide_high (W, 2): their x-y
     bounding boxes (m)."""

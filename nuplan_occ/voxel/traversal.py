@@ -191,6 +191,12 @@ def _margin(d, inv):
     return inv + SAFE_VOXELS / abs(d) if d != 0.0 else -np.inf
 
 
+@numba.njit(cache=True, inline="always")
+def _inside(cx, cy, cz, nx, ny, nz):
+    """Whether the cell (cx, cy, cz) lies in a grid of (nx, ny, nz) voxels."""
+    return 0 <= cx < nx and 0 <= cy < ny and 0 <= cz < nz
+
+
 @numba.njit(cache=True)
 def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, t_block, from_t, visible, reached,
                               stop_t):
@@ -230,7 +236,7 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
         cell = (cx * ny + cy) * nz + cz  # meaningful while every cell is inside the grid
         wx, wy, wz = _margin(dx, inv), _margin(dy, inv), _margin(dz, inv)
         safe_end = t1 - max(wx, wy, wz)  # past it, a plane beyond the segment's end may lie within a window
-        evaluate = not (0 <= cx < nx_ and 0 <= cy < ny and 0 <= cz < nz) or (
+        evaluate = not _inside(cx, cy, cz, nx_, ny, nz) or (
             (nx > 0 and inv * abs(dx) <= SAFE_VOXELS) or (my > 0 and inv * abs(dy) <= SAFE_VOXELS)
             or (mz > 0 and inv * abs(dz) <= SAFE_VOXELS))
         px = py = pz = t0  # each axis's last crossing (t0 before its first)
@@ -262,7 +268,7 @@ def mark_visible_to_first_hit(starts, ends, lower, voxel_size, shape, occupied, 
                 break
             if near | evaluate | (t > safe_end):  # bitwise: no branch per test
                 v = _voxel(ox, oy, oz, dx, dy, dz, t, inv, fx, fy, fz, ny, nz)
-                evaluate = evaluate or not (0 <= cx < nx_ and 0 <= cy < ny and 0 <= cz < nz)
+                evaluate = evaluate or not _inside(cx, cy, cz, nx_, ny, nz)
             else:
                 v = cell
             if v >= 0:
