@@ -87,7 +87,7 @@ class AggregateParams:
     dynamic_protect_dilation: int = 1
     dynamic_occupied_ratio: float = 0.5
     dynamic_sweep_stride: int = 2
-    dynamic_max_sweeps: int = 100
+    dynamic_max_sweeps: int = 50
     object_clearance_m: float = 0.2
     ground_keep_m: float = 0.03
     max_range_m: float = 75.0
