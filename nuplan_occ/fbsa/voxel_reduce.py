@@ -19,13 +19,31 @@ KEY_BITS = 21
 
 def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(N,) int64 packed voxel key of each point (N, 3); raises FbsaInputError beyond the packable range."""
-    index = np.floor(np.asarray(points, np.float64).reshape(-1, 3) / voxel_m)
+    pts = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3))
+    keys = np.empty(len(pts), np.int64)
+    lowest, highest = _pack_voxel_keys(pts, float(voxel_m), keys)
     half = float(1 << (KEY_BITS - 1))
-    if len(index) and (index.min() < -half or index.max() >= half):
-        raise FbsaInputError(f"voxel_keys: points reach {np.abs(points).max():.0f} m from the origin, beyond the "
+    if lowest < -half or highest >= half:
+        raise FbsaInputError(f"voxel_keys: points reach {np.abs(pts).max():.0f} m from the origin, beyond the "
                              f"{half * voxel_m:.0f} m that {voxel_m} m voxels can name")
-    shifted = index.astype(np.int64) + (1 << (KEY_BITS - 1))
-    return (shifted[:, 0] << (2 * KEY_BITS)) | (shifted[:, 1] << KEY_BITS) | shifted[:, 2]
+    return keys
+
+
+@numba.njit(cache=True)
+def _pack_voxel_keys(points: np.ndarray, voxel_m: float, keys: np.ndarray) -> tuple[float, float]:
+    """Writes to keys (N,) the packed key of each point's voxel index floor(points / voxel_m) (N, 3), in one pass;
+    returns the least and the largest index over all axes (inf, -inf for no points), for the range check."""
+    lowest, highest = np.inf, -np.inf
+    offset = 1 << (KEY_BITS - 1)
+    for n in range(points.shape[0]):
+        i = np.floor(points[n, 0] / voxel_m)
+        j = np.floor(points[n, 1] / voxel_m)
+        k = np.floor(points[n, 2] / voxel_m)
+        lowest = min(lowest, i, j, k)
+        highest = max(highest, i, j, k)
+        keys[n] = (((np.int64(i) + offset) << (2 * KEY_BITS)) | ((np.int64(j) + offset) << KEY_BITS)
+                   | (np.int64(k) + offset))
+    return lowest, highest
 
 
 def voxel_centroids(points: np.ndarray, voxel_m: float, min_count: int = 1) -> np.ndarray:
