@@ -2,9 +2,10 @@
 the logged relative motion as the prior; every correction is gated (poor fit or implausible jump ->
 keep the logged pose, with the reason recorded). Only the sweeps of `SceneData.background_positions(sweep_stride)`
 are registered; the others (and failed sweeps, or sweeps the filter left without a background) get poses
-interpolated between their neighbours' refined poses at their timestamps. Sweeps that the filter stage passed
-through unfiltered (it left its test to the aggregate: `aggregate_outliers`) are registered on the voxels
-holding at least `unfiltered_min_voxel_points` of their returns.
+interpolated between their neighbours' refined poses at their timestamps. Scenes with fewer loaded sweeps than
+`stride_min_sweeps` register every sweep and fit every point in every ICP stage (`coarse_stride` 1). Sweeps
+that the filter stage passed through unfiltered (it left its test to the aggregate: `aggregate_outliers`) are
+registered on the voxels holding at least `unfiltered_min_voxel_points` of their returns.
 
 Inputs: `scene`, `background`, `aggregate_outliers`. Outputs: `registration` (RegistrationResult; poses are T_global_from_ego).
 """
@@ -26,6 +27,8 @@ def run(inputs: dict, params: RegistrationParams) -> dict:
         raise ValueError(f"register: sweep_stride must be >= 1, got {params.sweep_stride}")
     if inputs["aggregate_outliers"] is not None:
         params = replace(params, min_voxel_points=params.unfiltered_min_voxel_points)
+    if len(scene.ok_indices()) < params.stride_min_sweeps:  # a short scene keeps all its evidence
+        params = replace(params, coarse_stride=1)
     registered = set(scene.background_positions(params.sweep_stride, params.stride_min_sweeps))
     clouds = MappedSequence(list(range(len(scene.sweeps))),
                             lambda position: inputs["background"][position] if position in registered else None)

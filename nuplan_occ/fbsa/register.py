@@ -56,7 +56,10 @@ class RegistrationParams:
     voxel_size_m: source sweep downsampling; map_voxel_m: local-map downsampling; window: number of previous
     trusted sweeps in the local map; max_correspondence_m: correspondence distances of the coarse-to-fine ICP
     stages (the first must exceed the expected prior error); tukey_ratio: Tukey kernel width as a fraction of the
-    stage's correspondence distance; max_iterations: per stage; normal_radius_m / normal_max_nn: map normals;
+    stage's correspondence distance; max_iterations: per stage; coarse_stride: the first stage (of several) fits
+    every n-th source point only, and the finer stages all of them from its estimate (1: all points in every
+    stage; the poses measured for 4 and 1 are in bench/report-scale.md's notes); normal_radius_m /
+    normal_max_nn: map normals;
     normal_reuse_frames: a map voxel's normal, once computed, serves the following frames' maps for this many
     frames before it is computed again from the current map (0: computed afresh for every frame). On the 5 s
     city scene (20 Hz) 10 cuts the normals computed per frame about fourfold at no loss in pose error vs truth.
@@ -70,7 +73,8 @@ class RegistrationParams:
     sweep_stride: used by the register stage, which registers only the sweeps of
     `SceneData.background_positions(sweep_stride)` (every output sweep and every n-th sweep in phase with them;
     1: every sweep) and passes the others as None, so their poses are interpolated (`refine_poses`).
-    stride_min_sweeps: scenes with fewer loaded sweeps than this register every sweep whatever the stride.
+    stride_min_sweeps: scenes with fewer loaded sweeps than this register every sweep whatever the stride (and,
+    in the register stage, with coarse_stride 1).
     min_voxel_points: the downsampled sweep and its contribution to the map keep only the voxels holding at
     least this many of its points (1: all), so isolated returns do not enter ICP when no outlier filter ran on
     the sweep. It needs dense sweeps: on sparse ones few voxels hold two returns and the fit's gates reject
@@ -84,6 +88,7 @@ class RegistrationParams:
     max_correspondence_m: tuple[float, ...] = (1.5, 0.6, 0.25)
     tukey_ratio: float = 0.5
     max_iterations: int = 30
+    coarse_stride: int = 4
     normal_radius_m: float = 1.0
     normal_max_nn: int = 20
     normal_reuse_frames: int = 10
@@ -252,10 +257,12 @@ def _register(source: np.ndarray, target: _Target, init: np.ndarray,
     (T_local_from_ego, fitness = share of source points with a correspondence, point-to-plane RMSE of the last
     stage's correspondences in m, conditioning)."""
     points, normals = target.points, target.normals
-    nearest = TrackedNearest(target.tree, len(source), NEAREST_MARGIN_M)
-    T = init
-    for dist in params.max_correspondence_m:
-        T, src, tgt = _point_to_plane_icp(source, points, normals, nearest, T, dist, params.tukey_ratio * dist,
+    T, nearest = init, None
+    for stage, dist in enumerate(params.max_correspondence_m):
+        used = source[::params.coarse_stride] if stage == 0 and len(params.max_correspondence_m) > 1 else source
+        if nearest is None or len(nearest.nearest) != len(used):
+            nearest = TrackedNearest(target.tree, len(used), NEAREST_MARGIN_M)
+        T, src, tgt = _point_to_plane_icp(used, points, normals, nearest, T, dist, params.tukey_ratio * dist,
                                           params.max_iterations)
     moved = transform_points(T, source[src])
     tgt_normals = normals.of(tgt)
@@ -317,6 +324,8 @@ def _check_inputs(clouds_ego: Sequence[np.ndarray], logged_poses: np.ndarray, pa
         raise FbsaInputError(f"refine_poses: {len(clouds_ego)} clouds but {len(logged)} logged poses")
     if params.anchor not in ANCHORS:
         raise FbsaInputError(f"refine_poses: anchor must be one of {ANCHORS}, got {params.anchor!r}")
+    if params.coarse_stride < 1:
+        raise FbsaInputError(f"refine_poses: coarse_stride must be >= 1, got {params.coarse_stride}")
     return logged
 
 

@@ -95,6 +95,8 @@ def test_refine_poses_input_checks(run):
         refine_poses(clouds[:2], seq.logged[:2, :3])
     with pytest.raises(FbsaInputError):
         refine_poses(clouds[:2], seq.logged[:2], RegistrationParams(anchor="last"))
+    with pytest.raises(FbsaInputError, match="coarse_stride"):
+        refine_poses(clouds[:2], seq.logged[:2], RegistrationParams(coarse_stride=0))
     empty = refine_poses([], np.zeros((0, 4, 4)))
     assert empty.poses.shape == (0, 4, 4) and empty.reasons == []
 
@@ -140,3 +142,15 @@ def test_density_gate_keeps_floaters_of_unfiltered_sweeps_out_of_icp(run):
     assert gated.accepted.all(), gated.reasons
     assert after["relative_translation_m"] <= 0.01 and after["relative_rotation_deg"] <= 0.02
     assert after["translation_m"] <= 0.12 and after["yaw_deg"] <= 0.4 and after["tilt_deg"] <= 0.1
+
+
+def test_coarse_stage_on_a_quarter_of_the_points_lands_where_the_full_cloud_does(run):
+    """RegistrationParams.coarse_stride thins only the first (widest) correspondence stage: the finer stages
+    start from its estimate and fit every point, so the poses match those of a coarse stage on every point."""
+    seq, clouds, _, result = run
+    full = refine_poses(clouds, seq.logged, RegistrationParams(coarse_stride=1))
+    assert RegistrationParams().coarse_stride == 4 and full.accepted.all()
+    step = np.einsum("fij,fjk->fik", np.stack([invert_transform(T) for T in full.poses]), result.poses)
+    assert np.abs(step[:, :3, 3]).max() < 0.002  # m
+    assert np.degrees(np.arccos(np.clip((np.trace(step[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1))).max() < 0.01
+    assert not np.array_equal(full.poses, result.poses)  # the stride took effect
