@@ -257,12 +257,16 @@ def _register(source: np.ndarray, target: _Target, init: np.ndarray,
     (T_local_from_ego, fitness = share of source points with a correspondence, point-to-plane RMSE of the last
     stage's correspondences in m, conditioning)."""
     points, normals = target.points, target.normals
-    T, nearest = init, None
-    for stage, dist in enumerate(params.max_correspondence_m):
-        used = source[::params.coarse_stride] if stage == 0 and len(params.max_correspondence_m) > 1 else source
-        if nearest is None or len(nearest.nearest) != len(used):
-            nearest = TrackedNearest(target.tree, len(used), NEAREST_MARGIN_M)
-        T, src, tgt = _point_to_plane_icp(used, points, normals, nearest, T, dist, params.tukey_ratio * dist,
+    T, distances = init, params.max_correspondence_m
+    if len(distances) > 1 and params.coarse_stride > 1:  # the widest stage on every coarse_stride-th point
+        thinned = source[::params.coarse_stride]
+        coarse_nearest = TrackedNearest(target.tree, len(thinned), NEAREST_MARGIN_M)
+        T, _, _ = _point_to_plane_icp(thinned, points, normals, coarse_nearest, T, distances[0],
+                                      params.tukey_ratio * distances[0], params.max_iterations)
+        distances = distances[1:]
+    nearest = TrackedNearest(target.tree, len(source), NEAREST_MARGIN_M)
+    for dist in distances:
+        T, src, tgt = _point_to_plane_icp(source, points, normals, nearest, T, dist, params.tukey_ratio * dist,
                                           params.max_iterations)
     moved = transform_points(T, source[src])
     tgt_normals = normals.of(tgt)
