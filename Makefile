@@ -24,14 +24,14 @@ test: setup
 	$(PYTHON) -m pytest -q
 
 bench: setup
-	$(PYTHON) -m nuplan_occ.bench bench
+	$(PYTHON) -m benchmarks.small bench
 
 bench-manifest: setup
-	$(PYTHON) -m nuplan_occ.bench_manifest --out bench
+	$(PYTHON) -m benchmarks.manifest --out bench
 
 # Real-scale yardstick (issue #16): city logs of one 5 / 10 / 20 s scene, one worker; bench/report-scale.{json,md}.
 bench-scale: setup
-	nice -n 5 $(PYTHON) -m nuplan_occ.bench_scale
+	nice -n 5 $(PYTHON) -m benchmarks.scale
 
 clean:
 	rm -rf $(DEMO_OUT) bench/work bench/data bench/manifest_work .setup.stamp

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import schemas
+from nuplan_occ import schemas
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from nuplan_occ.cli_errors import CliApp
+from nuplan_occ.cli.errors import CliApp
 from nuplan_occ.dataset import open_dataset
 from occgen.data import NoClipsError
 from occgen.exr import MapFileError
@@ -125,7 +125,7 @@ def bench(
     seed: int = typer.Option(0),
 ) -> None:
     """VAE reconstruction bench: IoU / mIoU on held-out frames, loss curves, compression ratios."""
-    from occgen.bench import make_synthetic_dataset, run_vae_bench, write_curve_png
+    from benchmarks.occgen_bench import make_synthetic_dataset, run_vae_bench, write_curve_png
 
     root = str(data) if data is not None else make_synthetic_dataset(str(out / "synthetic"))
     runs = [(name, None, name) for name in config] if not clip_len else [
@@ -148,7 +148,7 @@ def bench(
 
 def _register_part2() -> None:
     """Camera maps and LiDAR generation commands (occgen part 2: render-maps, lidar, lidar-train, eval-lidar)."""
-    from occgen.cli_part2 import register
+    from occgen.cli_sensors import register
 
     register(app)
 

@@ -98,7 +98,7 @@ def plan_tasks(db_paths: list[Path], data_root: Path, maps_root: Path, out: str,
     return tasks
 
 
-def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str | None = "mini",
+def run_build(data_root: Path, out: str, params: dict[str, Any], *, pipeline: list, split: str | None = "mini",
               log_names: list[str] | None = None, db_paths: list[str] | None = None, maps_root: str | None = None,
               workers: int = 1, executor: str = "local", ray_address: str | None = None,
               work_root: Path | None = None, num_shards: int = 1, shard_index: int = 0,
@@ -106,7 +106,7 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str |
               on_plan: Callable[[list[SceneTask]], None] | None = None,
               on_event: Callable[[tuple[str, str, str]], None] | None = None) -> BuildSummary:
     """Build the dataset at `out` from the logs under `data_root` (shard `shard_index` of `num_shards`
-    of them); returns the summary. work_root: where stage outputs are cached (default: see
+    of them) with the stages of `pipeline` (`nuplan_occ.stages.PIPELINE`); returns the summary. work_root: where stage outputs are cached (default: see
     `default_work_root`); keep_work: work-folder policy (see `pipeline.publish`); each run appends its
     scenes' stage times to the build log there (`nuplan_occ.pipeline.build_log`)."""
     started = time.perf_counter()
@@ -120,7 +120,7 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, split: str |
     summary = BuildSummary()
     build_log = BuildLog(work_root)
     by_scene = {(t.log_name, t.scene_name): t for t in tasks}
-    for result in execute(tasks, executor, workers, ray_address, on_event or (lambda event: None)):
+    for result in execute(tasks, pipeline, executor, workers, ray_address, on_event or (lambda event: None)):
         summary.add(result)
         build_log.scene(by_scene[(result.log_name, result.scene_name)].scene_token, result)
     summary.wall_seconds = time.perf_counter() - started

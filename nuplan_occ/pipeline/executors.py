@@ -15,20 +15,20 @@ class ExecutorError(RuntimeError):
     """The executor could not be started (e.g. Ray not installed or the cluster unreachable)."""
 
 
-def _run_with_queue(task: SceneTask, events_queue) -> SceneResult:
-    return run_scene(task, events_queue.put if events_queue is not None else None)
+def _run_with_queue(task: SceneTask, pipeline: list, events_queue) -> SceneResult:
+    return run_scene(task, pipeline, events_queue.put if events_queue is not None else None)
 
 
-def run_local(tasks: list[SceneTask], workers: int, events: EventSink) -> Iterator[SceneResult]:
-    """Yield results as scenes finish; workers == 1 runs in this process."""
+def run_local(tasks: list[SceneTask], pipeline: list, workers: int, events: EventSink) -> Iterator[SceneResult]:
+    """Yield results as scenes finish, each built by `pipeline`'s stages; workers == 1 runs in this process."""
     if workers <= 1:
         for task in tasks:
-            yield run_scene(task, events)
+            yield run_scene(task, pipeline, events)
         return
     context = multiprocessing.get_context("spawn")
     with context.Manager() as manager, ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
         events_queue = manager.Queue()
-        pending = {pool.submit(_run_with_queue, task, events_queue) for task in tasks}
+        pending = {pool.submit(_run_with_queue, task, pipeline, events_queue) for task in tasks}
         while pending:
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             _drain(events_queue, events)
@@ -45,7 +45,8 @@ def _drain(events_queue, events: EventSink) -> None:
             return
 
 
-def run_ray(tasks: list[SceneTask], workers: int, address: str | None, events: EventSink) -> Iterator[SceneResult]:
+def run_ray(tasks: list[SceneTask], pipeline: list, workers: int, address: str | None,
+            events: EventSink) -> Iterator[SceneResult]:
     """Yield results as scenes finish on Ray: an existing cluster at `address`, else a local Ray with
     `workers` CPUs. One task per scene, one CPU each; only completion events reach the progress bar."""
     try:
@@ -58,7 +59,7 @@ def run_ray(tasks: list[SceneTask], workers: int, address: str | None, events: E
         ray.init(log_to_driver=False, configure_logging=False, **init)
     try:
         remote = ray.remote(num_cpus=1, max_retries=2)(run_scene)
-        pending = {remote.remote(task): task for task in tasks}
+        pending = {remote.remote(task, pipeline): task for task in tasks}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
@@ -71,11 +72,11 @@ def run_ray(tasks: list[SceneTask], workers: int, address: str | None, events: E
             ray.shutdown()
 
 
-def execute(tasks: list[SceneTask], executor: str, workers: int, ray_address: str | None,
+def execute(tasks: list[SceneTask], pipeline: list, executor: str, workers: int, ray_address: str | None,
             events: EventSink) -> Iterable[SceneResult]:
-    """Dispatch to the named executor ("local" or "ray")."""
+    """Build every task with `pipeline`'s stages on the named executor ("local" or "ray")."""
     if executor == "local":
-        return run_local(tasks, workers, events)
+        return run_local(tasks, pipeline, workers, events)
     if executor == "ray":
-        return run_ray(tasks, workers, ray_address, events)
+        return run_ray(tasks, pipeline, workers, ray_address, events)
     raise ExecutorError(f"unknown executor {executor!r} (choose local or ray)")

@@ -1,4 +1,4 @@
-"""Runs the stages of `stages.PIPELINE` for one scene, with every scene stage's output cached under the
+"""Runs the stages of a pipeline (the build's is `nuplan_occ.stages.PIPELINE`) for one scene, with every scene stage's output cached under the
 work folder by a key of (stage, params, code version, input keys).
 
 The frame stages run as one stream: for each output frame in order, every frame stage runs on it and the
@@ -179,15 +179,14 @@ def _outputs_still_valid(stage_name: str, outputs: dict[str, Any], task: SceneTa
     return shard_exists(task.out_root, task.shard_key)
 
 
-def run_scene(task: SceneTask, events: EventSink | None = None) -> SceneResult:
-    """Build one scene and publish it (shard, manifest fragment, work policy: `publish.py`); never raises
-    for a bad scene: its frames are published as failed and the error comes back in the result."""
-    from stages import PIPELINE
-
+def run_scene(task: SceneTask, pipeline: list, events: EventSink | None = None) -> SceneResult:
+    """Build one scene with the stages of `pipeline` (execution order) and publish it (shard, manifest
+    fragment, work policy: `publish.py`); never raises for a bad scene: its frames are published as failed
+    and the error comes back in the result."""
     reuse_freed_pages()
     result = SceneResult(task.log_name, task.scene_name)
     try:
-        rows = run_stages(task, PIPELINE, ("rows",), events, result)["rows"]
+        rows = run_stages(task, pipeline, ("rows",), events, result)["rows"]
     except Exception as exc:  # a scene failure is recorded, never fatal to the build
         result.error = f"{type(exc).__name__}: {exc}"
         traceback.print_exc()

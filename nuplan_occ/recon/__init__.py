@@ -7,7 +7,7 @@ Public API:
 """
 
 from nuplan_occ.recon.api import METHODS, reconstruct
-from nuplan_occ.recon.metrics import surface_metrics, voxel_iou
+from nuplan_occ.evaluation.surfaces import surface_metrics, voxel_iou
 from nuplan_occ.recon.params import ReconError, ReconParams
 from nuplan_occ.recon.surface import Surface
 

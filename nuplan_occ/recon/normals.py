@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from nuplan_occ.fbsa.knn import KdTree
-from nuplan_occ.fbsa.plane_normals import pca_normals
-from nuplan_occ.fbsa.voxel_reduce import KeyIndex, group_means, voxel_keys
+from nuplan_occ.points.knn import KdTree
+from nuplan_occ.points.plane_normals import pca_normals
+from nuplan_occ.points.voxel_reduce import KeyIndex, group_means, voxel_keys
 
 
 def estimate_normals(points: np.ndarray, sensor_origins: np.ndarray, knn: int = 30, cell_m: float = 0.0,

@@ -11,7 +11,7 @@ from pathlib import Path
 import jsonschema
 import numpy as np
 
-import schemas
+from nuplan_occ import schemas
 from nuplan_occ.labels import LABELS
 from nuplan_occ.release.errors import ReleaseImportError
 

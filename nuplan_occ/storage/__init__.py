@@ -13,7 +13,6 @@ from nuplan_occ.storage.manifest_reader import read_manifest
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.reader import ShardReader, read_member
 from nuplan_occ.storage.records import FrameRecord, frame_key
-from nuplan_occ.storage.throughput import decode_throughput
 from nuplan_occ.storage.validate import validate_dataset
 from nuplan_occ.storage.writer import DatasetWriter, shard_exists
 

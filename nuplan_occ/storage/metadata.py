@@ -9,7 +9,7 @@ import json
 from collections.abc import Mapping
 
 import nuplan_occ
-import schemas
+from nuplan_occ import schemas
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import DatasetFormatError, InvalidFrameError

@@ -19,7 +19,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-import schemas
+from nuplan_occ import schemas
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage import codecs
 from nuplan_occ.storage.codecs import MEMBERS

@@ -13,7 +13,7 @@ import numba
 import numpy as np
 
 from nuplan_occ.grid import GridSpec
-from nuplan_occ.voxel.traversal import grid_args
+from nuplan_occ.rays.traversal import grid_args
 
 
 @numba.njit(cache=True, inline="always")

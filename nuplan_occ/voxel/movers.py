@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.fbsa.voxel_reduce import voxel_keys
+from nuplan_occ.points.voxel_reduce import voxel_keys
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
 from nuplan_occ.voxel.ground import ground_height_index

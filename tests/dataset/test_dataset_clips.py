@@ -10,7 +10,7 @@ from nuplan_occ.io.types import LidarFrame
 from nuplan_occ.pipeline.scene import output_slots
 from nuplan_occ.storage import DatasetWriter
 from nuplan_occ.storage.clips import output_index_from_frame_index, output_index_from_timestamps
-from nuplan_occ.storage.synthetic import synthetic_log
+from nuplan_occ.synth.grid_frames import synthetic_log
 from nuplan_occ.torch import OccupancyDataset
 
 GRID = GridSpec(-2.0, 2.0, -2.0, 2.0, -1.0, 1.0, 0.25)

@@ -9,7 +9,7 @@ from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import LABELS
 from nuplan_occ.storage import DatasetWriter, MissingMemberError, read_manifest
-from nuplan_occ.storage.synthetic import synthetic_log
+from nuplan_occ.synth.grid_frames import synthetic_log
 
 GRID = GridSpec(-2.0, 2.0, -2.0, 2.0, -1.0, 1.0, 0.25)  # 16 x 16 x 8
 

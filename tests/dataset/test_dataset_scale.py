@@ -18,7 +18,7 @@ from nuplan_occ.dataset import open_dataset
 from nuplan_occ.storage import DatasetWriter, token_index
 from nuplan_occ.storage.fragments import shard_dir
 from nuplan_occ.storage.manifest import SORT_KEYS
-from nuplan_occ.storage.simulated_manifest import simulated_manifest
+from benchmarks.simulated_manifest import simulated_manifest
 from nuplan_occ.torch import OccupancyDataset
 
 SCENES, FRAMES = 1_000, 200

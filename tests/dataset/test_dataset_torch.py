@@ -11,7 +11,7 @@ from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage import DatasetWriter, MissingMemberError
 from nuplan_occ.storage.clips import clip_starts
 from nuplan_occ.storage.reader import ShardReader
-from nuplan_occ.storage.synthetic import synthetic_log
+from nuplan_occ.synth.grid_frames import synthetic_log
 from nuplan_occ.torch import OccupancyDataset
 
 GRID = GridSpec(-2.0, 2.0, -2.0, 2.0, -1.0, 1.0, 0.25)  # 16 x 16 x 8

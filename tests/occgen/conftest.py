@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from nuplan_occ.grid import GridSpec
-from occgen.bench import make_synthetic_dataset
+from benchmarks.occgen_bench import make_synthetic_dataset
 
 SMALL_GRID = GridSpec(x_min=-8.0, x_max=8.0, y_min=-8.0, y_max=8.0, z_min=-1.0, z_max=1.0)
 

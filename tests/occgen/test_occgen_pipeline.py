@@ -11,7 +11,7 @@ from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import ROAD, VEHICLE
 from occgen import checkpoint
-from occgen.bench import run_vae_bench, write_curve_png
+from benchmarks.occgen_bench import run_vae_bench, write_curve_png
 from occgen.cli import app
 from occgen.configs import get_config
 from occgen.data import load_clip, open_clips, semantics_batches

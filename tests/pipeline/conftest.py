@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from nuplan_occ.stages import PIPELINE
 
 @pytest.fixture
 def data_root(synthetic_root, tmp_path) -> Path:
@@ -23,7 +24,7 @@ def reference_build(synthetic_root, tmp_path_factory) -> Path:
     from pipeline_helpers import build_params
 
     out = tmp_path_factory.mktemp("reference") / "out"
-    run_build(synthetic_root, str(out), build_params())
+    run_build(synthetic_root, str(out), build_params(), pipeline=PIPELINE)
     return out
 
 
@@ -60,5 +61,5 @@ def bad_blobs_build(synthetic_root, tmp_path_factory) -> DamagedBuild:
     (blobs / corrupt.filename).write_bytes(CORRUPT_PCD)
     (blobs / missing.filename).unlink()
     out = base / "out"
-    summary = run_build(data_root, str(out), build_params(fast=False))
+    summary = run_build(data_root, str(out), build_params(fast=False), pipeline=PIPELINE)
     return DamagedBuild(data_root, out, summary, corrupt, missing)

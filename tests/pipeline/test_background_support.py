@@ -1,11 +1,11 @@
-"""nuplan_occ.voxel.free_space.sorted_point_support: the support of an x-sorted scene aggregate in a frame's grid, from the
+"""nuplan_occ.rays.free_space.sorted_point_support: the support of an x-sorted scene aggregate in a frame's grid, from the
 slice of points within the grid's window, equals the voxels of every point moved into the grid (numpy)."""
 
 import numpy as np
 
 from nuplan_occ.geometry import invert_transform, transform_points, yaw_matrix
 from nuplan_occ.grid import DEFAULT_GRID
-from nuplan_occ.voxel.free_space import sorted_point_support
+from nuplan_occ.rays.free_space import sorted_point_support
 
 
 def test_the_window_slice_gives_the_support_of_every_point():

@@ -16,6 +16,7 @@ from nuplan_occ.storage import read_manifest
 from nuplan_occ.storage.digest import content_digests
 from nuplan_occ.storage.validate import validate_dataset
 from nuplan_occ.torch import OccupancyDataset
+from nuplan_occ.stages import PIPELINE
 
 from pipeline_helpers import build_params
 
@@ -77,14 +78,14 @@ def test_build_end_to_end_default_method_with_bad_blobs(bad_blobs_build):
         assert not np.any(grids["instance"][~on_object]) and not np.any(grids["flow"][~on_object])
 
     before = tree_digest(out)
-    again = run_build(data_root, str(out), build_params(fast=False))
+    again = run_build(data_root, str(out), build_params(fast=False), pipeline=PIPELINE)
     assert again.scenes_fully_cached == again.scenes
     assert tree_digest(out) == before
 
 
 def test_ray_executor_matches_local(synthetic_root, reference_build, tmp_path):
     distributed = tmp_path / "ray"
-    run_build(synthetic_root, str(distributed), build_params(), executor="ray", workers=2)
+    run_build(synthetic_root, str(distributed), build_params(), pipeline=PIPELINE, executor="ray", workers=2)
     assert tree_digest(distributed) == tree_digest(reference_build)
 
 
@@ -92,7 +93,7 @@ def test_build_to_an_fsspec_url_matches_the_local_build(synthetic_root, referenc
     import fsspec
 
     url = "memory://nuplan-occ-test/out"
-    summary = run_build(synthetic_root, url, build_params(), work_root=reference_build / "work")
+    summary = run_build(synthetic_root, url, build_params(), pipeline=PIPELINE, work_root=reference_build / "work")
     # the default work policy dropped the grids and point clouds; the kept poses, boxes and surfaces are reused
     assert {p.name for p in (reference_build / "work").glob("*/*/*")} == {"register", "track", "reconstruct", "write"}
     assert "voxelize" in summary.stage_seconds and not {"register", "track", "reconstruct"} & set(summary.stage_seconds)

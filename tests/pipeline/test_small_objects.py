@@ -13,6 +13,7 @@ from nuplan_occ.labels import LABELS
 from nuplan_occ.pipeline.build import run_build
 from nuplan_occ.pipeline.params import apply_overrides
 from nuplan_occ.storage import read_manifest
+from nuplan_occ.stages import PIPELINE
 
 from pipeline_helpers import build_params
 
@@ -29,7 +30,7 @@ def small_objects_build(tmp_path_factory):
     synthesize(base / "data", logs=1, seconds=2.0, seed=3, preset="small_objects", scene_seconds=2.0)
     params = apply_overrides(build_params(fast=False), {"reconstruct": {"method": "none"},  # background: points
                                                         "load": {"context_seconds": 0.25}}, "test")
-    run_build(base / "data", str(base / "out"), params)
+    run_build(base / "data", str(base / "out"), params, pipeline=PIPELINE)
     return base / "data", base / "out"
 
 

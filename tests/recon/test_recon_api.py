@@ -8,7 +8,7 @@ from conftest import curb_scan
 
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.recon import ReconError, ReconParams, Surface, reconstruct, surface_metrics, voxel_iou
-from nuplan_occ.recon.bench import compare_methods
+from benchmarks.recon_bench import compare_methods
 
 
 def test_all_methods_run_through_reconstruct_and_score():

@@ -11,7 +11,7 @@ from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage import read_metadata, DatasetFormatError, DatasetWriter, read_manifest, shard_exists, validate_dataset
 from nuplan_occ.storage.digest import content_digests
-from nuplan_occ.storage.synthetic import synthetic_log
+from nuplan_occ.synth.grid_frames import synthetic_log
 
 SMALL = GridSpec(-4.0, 4.0, -4.0, 4.0, -1.0, 1.0, 0.25)
 MEMBERS_USED = ["semantics", "mask_lidar", "flow"]

@@ -20,8 +20,8 @@ from nuplan_occ.storage import fragments
 from nuplan_occ.storage.compact import compact
 from nuplan_occ.storage.manifest import rows_to_table, to_parquet_bytes
 from nuplan_occ.storage.manifest_reader import ManifestIndex
-from nuplan_occ.storage.simulated_manifest import simulated_manifest
-from nuplan_occ.storage.synthetic import synthetic_log
+from benchmarks.simulated_manifest import simulated_manifest
+from nuplan_occ.synth.grid_frames import synthetic_log
 
 SMALL = GridSpec(-4.0, 4.0, -4.0, 4.0, -1.0, 1.0, 0.25)
 

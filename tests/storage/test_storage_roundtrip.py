@@ -14,7 +14,7 @@ from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import LABELS
 from nuplan_occ.storage import MEMBERS, DatasetWriter, FrameRecord, InvalidFrameError, read_manifest, read_member
-from nuplan_occ.storage.synthetic import synthetic_arrays, synthetic_log
+from nuplan_occ.synth.grid_frames import synthetic_arrays, synthetic_log
 
 SMALL = GridSpec(-4.0, 4.0, -4.0, 4.0, -1.0, 1.0, 0.25)  # 32 x 32 x 8
 LOG = "2021.05.12.22.00.38_veh-35_01008_01518"

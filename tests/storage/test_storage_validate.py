@@ -8,14 +8,14 @@ import jsonschema
 import pyarrow.parquet as pq
 import pytest
 
-import schemas
+from nuplan_occ import schemas
 from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage import (
     MEMBERS, ChecksumError, DatasetFormatError, DatasetWriter, read_manifest, read_member, validate_dataset,
 )
 from nuplan_occ.storage.manifest import base_schema
-from nuplan_occ.storage.synthetic import synthetic_log
+from nuplan_occ.synth.grid_frames import synthetic_log
 
 SMALL = GridSpec(-4.0, 4.0, -4.0, 4.0, -1.0, 1.0, 0.25)
 

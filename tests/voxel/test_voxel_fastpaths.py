@@ -11,8 +11,8 @@ from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.io.types import CameraCalibration
 from nuplan_occ.voxel import voxelize
-from nuplan_occ.voxel.traversal import grid_args, mark_visible_to_first_hit
-from nuplan_occ.voxel.visibility import camera_rays, camera_visibility, lidar_observation
+from nuplan_occ.rays.traversal import grid_args, mark_visible_to_first_hit
+from nuplan_occ.rays.visibility import camera_rays, camera_visibility, lidar_observation
 
 GRID = GridSpec(x_min=-6, x_max=6, y_min=-5, y_max=5, z_min=-2, z_max=2, voxel_size=0.25)
 

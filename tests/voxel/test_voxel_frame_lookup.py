@@ -7,7 +7,7 @@ import numpy as np
 from nuplan_occ.geometry import invert_transform, make_transform, transform_points, yaw_matrix
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.voxel.frame_lookup import any_bit_set, flat_voxels, mark_points
-from nuplan_occ.voxel.traversal import grid_args
+from nuplan_occ.rays.traversal import grid_args
 
 GRID = GridSpec(x_min=-4, x_max=4, y_min=-3, y_max=3, z_min=-1, z_max=1, voxel_size=0.25)
 QUARTER = make_transform(np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]), [0.5, -0.75, 0.25])  # yaw 90 deg

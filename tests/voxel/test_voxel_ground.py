@@ -4,7 +4,7 @@ import numpy as np
 
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import OTHER, OTHER_GROUND, ROAD, ROAD_LINE
-from nuplan_occ.voxel.baseline import paper_column_stamp
+from benchmarks.paper_method import paper_column_stamp
 from nuplan_occ.voxel.ground import (
     estimate_ground_height, ground_height_index, label_background, lowest_occupied_height,
 )

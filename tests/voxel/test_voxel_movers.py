@@ -95,7 +95,7 @@ def test_a_bicycle_reaches_down_to_its_ground_and_replaces_the_background_there(
     pedestrian seen from 0.3 m up gains nothing (not a bicycle). Painted into a frame whose ground layer is
     background, the wheel voxels replace it and stop being background."""
     from nuplan_occ.voxel.compose import FrameGrids
-    from stages.voxelize import paint_empty
+    from nuplan_occ.stages.voxelize import paint_empty
 
     xs, zs = np.meshgrid(np.arange(11.2, 13.0, 0.1), np.arange(-0.6, 0.3, 0.1))
     frame = np.column_stack([xs.ravel(), np.full(xs.size, 3.05), zs.ravel()])  # its side, as a sweep sees it

@@ -1,0 +1,164 @@
+"""Solid object shapes by space carving in the object's BOX frame (origin at the box centre, x along the
+heading, z up; metres).
+
+The box [-size/2, size/2] is tiled by a lattice of cells of edge <= `resolution`. A cell is carved (free)
+when a ray from a sensor origin to one of the object's points passes through it before reaching the point;
+every other cell stays solid: cells holding a point (the observed surface) and cells no ray reached (the
+unobserved inside). The result is the object's visual hull seen from the aggregated sensor poses, which
+is closed by construction, so a voxelizer fills it solid where the surface itself is open.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nuplan_occ.points import PointInputError
+from nuplan_occ.aggregation.box_cull import segments_near_box
+
+
+@dataclass(frozen=True)
+class SolidSamples:
+    """A carved solid as points in the BOX frame (m): points (M, 3) sample the solid lattice cells (their
+    centres, or their corners); observed (M,) bool: the sample's cell holds one of the object's points."""
+
+    points: np.ndarray
+    observed: np.ndarray
+
+
+def lattice_shape(size: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """(counts (3,) int, cell edges (3,) m) of the lattice tiling a box of `size` (3,) m with cells of edge
+    at most `resolution` m (at least one cell per axis)."""
+    counts = np.maximum(np.ceil(np.asarray(size, np.float64) / resolution - 1e-9), 1).astype(np.int64)
+    return counts, np.asarray(size, np.float64) / counts
+
+
+def lattice_cells(xyz_box: np.ndarray, size: np.ndarray, edge: np.ndarray, counts: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(inside (N,) bool, flat C-order cell index of each inside point (K,)) of points xyz_box (N, 3, box
+    frame) in the lattice (counts, edge) = `lattice_shape(size, ...)` of a box of `size`."""
+    ijk = np.floor((np.asarray(xyz_box, np.float64).reshape(-1, 3) + np.asarray(size, np.float64) / 2.0) / edge).astype(np.int64)
+    inside = np.all((ijk >= 0) & (ijk < counts), axis=1)
+    ijk = ijk[inside]
+    return inside, (ijk[:, 0] * counts[1] + ijk[:, 1]) * counts[2] + ijk[:, 2]
+
+
+def clip_segments_to_box(starts: np.ndarray, ends: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Parameters [t0, t1] of the parts of segments start + t (end - start), t in [0, 1], inside the box
+    [-half, half] (slab method); segments missing the box come back with t0 > t1. starts, ends (N, 3)."""
+    d = ends - starts
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (-half - starts) / d
+        tb = (half - starts) / d
+    parallel = np.abs(d) < 1e-12
+    inside = np.abs(starts) <= half
+    lo = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
+    hi = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
+    return np.maximum(lo.max(axis=1), 0.0), np.minimum(hi.min(axis=1), 1.0)
+
+
+def segments_through_box(starts: np.ndarray, ends: np.ndarray, center: np.ndarray, yaw: float,
+                         size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The segments start -> end (N, 3) (e.g. sensor origin -> background return, ego frame) that cross an
+    upright box (center (3,), yaw rad, size (3,) [length, width, height] in the same frame), moved into the
+    box frame: (starts_box (K, 3), ends_box (K, 3)), in input order. A compiled test picks the segments near
+    the box (box_cull), the exact slab test of `clip_segments_to_box` decides among them."""
+    starts, ends = np.asarray(starts, np.float64), np.asarray(ends, np.float64)
+    center, half = np.asarray(center, np.float64), np.asarray(size, np.float64) / 2.0
+    near = np.flatnonzero(segments_near_box(starts, ends, center, float(yaw), half, CULL_GROW_M))
+    c, s = np.cos(yaw), np.sin(yaw)
+    R_box_from_frame = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    starts_box = (starts[near] - center) @ R_box_from_frame.T
+    ends_box = (ends[near] - center) @ R_box_from_frame.T
+    t0, t1 = clip_segments_to_box(starts_box, ends_box, half)
+    crossing = t0 < t1
+    return starts_box[crossing], ends_box[crossing]
+
+
+CULL_GROW_M = 1e-6
+"""segments_through_box decides exactly only the segments crossing the box grown by this (box_cull)."""
+
+
+def carve_object_solid(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float = 0.1,
+                       stop_before_m: float | None = None, min_rays: int = 1, chunk_samples: int = 2_000_000,
+                       through: tuple[np.ndarray, np.ndarray] | None = None,
+                       through_margin_m: float = 0.05) -> np.ndarray:
+    """(M, 3) centres (box frame, m) of the lattice cells of the box that stay solid after space carving.
+
+    points_box (N, 3): the object's points in its box frame (points outside the box are ignored as
+    surface but their rays still carve the box); origins_box (N, 3): the sensor origin of each point in
+    the same frame; size (3,) [length, width, height] m. Each ray is clipped to the box and sampled every
+    resolution / 2 up to `stop_before_m` (default resolution / 2) before its point, so noise in depth does
+    not carve the surface; a cell is carved when at least `min_rays` distinct rays have a sample in it and
+    it holds no point. `through` = (starts (K, 3), ends (K, 3)), box frame: more rays that carve the same
+    way but whose ends are not the object's (returns beyond the box, see `segments_through_box`); they carve
+    only deeper than `through_margin_m` inside the box faces, since a noisy box puts the object's own edge
+    where such a ray passed. `chunk_samples` bounds the memory of one batch of samples.
+    """
+    points = np.asarray(points_box, np.float64)
+    origins = np.asarray(origins_box, np.float64)
+    size = np.asarray(size, np.float64).reshape(-1)
+    if points.ndim != 2 or points.shape[1] != 3 or origins.shape != points.shape:
+        raise PointInputError(f"carve_object_solid: points_box (N, 3) and origins_box of the same shape required, "
+                             f"got {points.shape} and {origins.shape}")
+    if size.shape != (3,) or not np.all(size > 0) or not resolution > 0 or min_rays < 1:
+        raise PointInputError(f"carve_object_solid: size must be 3 positive lengths, resolution > 0 and min_rays >= 1; "
+                             f"got size {size}, resolution {resolution}, min_rays {min_rays}")
+    counts, edge = lattice_shape(size, resolution)
+    half = size / 2.0
+    step = resolution / 2.0
+    stop = step if stop_before_m is None else float(stop_before_m)
+
+    n_cells = int(np.prod(counts))
+    traversed = np.zeros(n_cells, np.int64)
+    starts, ends = origins, points
+    t0, t1 = clip_segments_to_box(origins, points, half)
+    if through is not None:
+        through_starts = np.asarray(through[0], np.float64).reshape(-1, 3)
+        through_ends = np.asarray(through[1], np.float64).reshape(-1, 3)
+        u0, u1 = clip_segments_to_box(through_starts, through_ends, np.maximum(half - through_margin_m, 0.0))
+        starts, ends = np.vstack([origins, through_starts]), np.vstack([points, through_ends])
+        t0, t1 = np.r_[t0, u0], np.r_[t1, u1]
+    length = np.linalg.norm(ends - starts, axis=1)
+    t1 = np.minimum(t1, 1.0 - stop / np.maximum(length, 1e-12))
+    keep = (t1 >= t0) & (length > 0)
+    rays_o, rays_d, t0, t1, length = starts[keep], (ends - starts)[keep], t0[keep], t1[keep], length[keep]
+    samples = np.floor((t1 - t0) * length / step).astype(np.int64) + 1
+    cumulative = np.cumsum(samples)
+    total = int(cumulative[-1]) if len(samples) else 0
+    cuts = np.searchsorted(cumulative, np.arange(chunk_samples, total, chunk_samples), side="right")
+    splits = np.unique(np.r_[0, cuts, len(samples)])
+    for start, end in zip(splits[:-1], splits[1:]):
+        n = samples[start:end]
+        owner = np.repeat(np.arange(start, end), n)
+        offset = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        t = t0[owner] + offset * step / length[owner]
+        ok, cells = lattice_cells(rays_o[owner] + t[:, None] * rays_d[owner], size, edge, counts)
+        ray_cells = np.unique(owner[ok] * n_cells + cells) % n_cells
+        traversed += np.bincount(ray_cells, minlength=n_cells)
+    solid = traversed < min_rays
+    solid[lattice_cells(points, size, edge, counts)[1]] = True
+    ijk = np.stack(np.unravel_index(np.flatnonzero(solid), tuple(counts)), axis=1)
+    return (ijk + 0.5) * edge - half
+
+
+def cell_corner_points(cells_box: np.ndarray, size: np.ndarray, resolution: float, inset: float = 0.05) -> np.ndarray:
+    """(8 M, 3) points near the 8 corners of each lattice cell (centres cells_box (M, 3), box frame, of the
+    lattice `lattice_shape(size, resolution)`), moved inward by `inset` of a cell edge: voxelizing them
+    marks every voxel a cell overlaps by more than that inset, where voxelizing the centres misses the
+    voxels a cell only grazes."""
+    _, edge = lattice_shape(size, resolution)
+    signs = np.array(np.meshgrid([-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0], indexing="ij")).reshape(3, -1).T
+    offsets = signs * (0.5 - inset) * edge
+    return (np.asarray(cells_box, np.float64)[:, None, :] + offsets[None]).reshape(-1, 3)
+
+
+def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float) -> np.ndarray:
+    """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size,
+    resolution)`) that hold at least one of points_box (N, 3, box frame)."""
+    counts, edge = lattice_shape(size, resolution)
+    inside, cells = lattice_cells(cells_box, size, edge, counts)
+    held = np.zeros(len(inside), dtype=bool)
+    held[inside] = np.isin(cells, lattice_cells(points_box, size, edge, counts)[1])
+    return held

@@ -1,0 +1,302 @@
+"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, compact, report. `register(app)` adds
+them."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def _fmt(value, digits: int = 4) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return "n/a" if value != value else f"{value:.{digits}f}"
+    if isinstance(value, int):
+        return f"{value:,}"
+    return str(value)
+
+
+def view_cmd(
+    out: str = typer.Argument(..., help="Dataset root (path or fsspec URL)."),
+    index: Optional[int] = typer.Option(None, "--index", help="Frame index among the ok frames (default 0)."),
+    token: Optional[str] = typer.Option(None, "--token", help="lidar_pc token of the frame (instead of --index)."),
+    mask: Optional[str] = typer.Option(None, "--mask", help="lidar | camera: draw only voxels inside that mask."),
+    unknown: bool = typer.Option(False, "--unknown", help="With --mask: draw the unobserved space translucent."),
+    points: bool = typer.Option(False, "--points", help="Overlay the frame's LiDAR sweep, read from --data-root "
+                                "(skipped with a message when the log or its blobs are not reachable)."),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", envvar="NUPLAN_DATA_ROOT",
+                                             help="nuPlan data root holding the source logs (for --points)."),
+    screenshot: Optional[Path] = typer.Option(None, "--screenshot", help="Render off-screen to this PNG."),
+) -> None:
+    """Show one frame in 3D: voxels in the label palette, the ego box, optional mask and LiDAR points."""
+    from nuplan_occ.dataset import open_dataset
+    from nuplan_occ.viewer import PointsUnavailable, frame_points_ego, render_frame
+
+    if index is not None and token is not None:
+        raise typer.BadParameter("give --index or --token, not both")
+    if mask not in (None, "lidar", "camera"):
+        raise typer.BadParameter("--mask must be lidar or camera")
+    ds = open_dataset(out)
+    i = ds.index_of_token(token) if token is not None else (index or 0)
+    cloud = None
+    if points:
+        ident = ds.get(i, keys=())
+        if data_root is None:
+            err_console.print("--points skipped: no --data-root given (or NUPLAN_DATA_ROOT set)")
+        else:
+            try:
+                cloud = frame_points_ego(data_root, ident["log_name"], ident["token"])
+            except PointsUnavailable as exc:
+                err_console.print(f"--points skipped: source sweep not reachable: {exc}")
+    render_frame(out, index=i, mask=mask, points=cloud, screenshot=screenshot, show_unknown=unknown)
+    if screenshot is not None:
+        console.print(f"screenshot written to {screenshot}")
+
+
+def eval_table(result: dict) -> Table:
+    """Rich table of an `evaluate` result: pooled IoU and per-class IoU."""
+    pooled = result["pooled"]
+    table = Table(title=f"{result['frames_matched']} matched frames (built {result['frames_built']}, "
+                        f"truth {result['frames_truth']}), mask: {result['mask']}")
+    table.add_column("class")
+    table.add_column("IoU", justify="right")
+    table.add_row("[bold]occupied[/bold]", _fmt(pooled["iou"]))
+    for class_id, iou in pooled["per_class"].items():
+        table.add_row(f"{result['class_names'][class_id]} ({class_id})", _fmt(iou))
+    table.add_row("[bold]mIoU[/bold]", _fmt(pooled["miou"]))
+    table.add_row("mean per-frame IoU / mIoU", f"{_fmt(result['mean_frame_iou'])} / {_fmt(result['mean_frame_miou'])}")
+    return table
+
+
+FRAME_ROWS_SHOWN = 20
+
+
+def frames_table(result: dict) -> Table:
+    """Rich table of the first FRAME_ROWS_SHOWN per-frame rows of an `evaluate` result."""
+    frames = result["frames"]
+    more = f" (first {FRAME_ROWS_SHOWN}; all in --json)" if len(frames) > FRAME_ROWS_SHOWN else ""
+    table = Table(title=f"per frame{more}")
+    for name in ("token", "IoU", "mIoU", "occupied built", "occupied truth"):
+        table.add_column(name, justify="left" if name == "token" else "right")
+    for f in frames[:FRAME_ROWS_SHOWN]:
+        table.add_row(f["token"], _fmt(f["iou"]), _fmt(f["miou"]), _fmt(f["n_occupied_built"]),
+                      _fmt(f["n_occupied_truth"]))
+    return table
+
+
+def eval_cmd(
+    built: str = typer.Argument(..., help="Built dataset root."),
+    truth: str = typer.Argument(..., help="Truth dataset root (frames matched by token)."),
+    mask: str = typer.Option("mask_lidar", "--mask", help="Truth member restricting the voxels: mask_lidar, "
+                             "mask_camera or none."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the full result (per-frame table) here."),
+    picture: Optional[Path] = typer.Option(None, "--picture", help="PNG of one matched frame, top-down: built | "
+                                           "truth | difference (e.g. an imported release against our build)."),
+    token: Optional[str] = typer.Option(None, "--token", help="lidar_pc token of the --picture frame (default: "
+                                        "the first matched frame)."),
+) -> None:
+    """IoU / per-class IoU / mIoU of a built dataset against a truth dataset (frames matched by token)."""
+    from nuplan_occ.evaluation.datasets import evaluate
+
+    result = evaluate(built, truth, mask=mask, json_path=json_out)
+    console.print(eval_table(result))
+    console.print(frames_table(result))
+    if picture is not None:
+        from nuplan_occ.release.compare import render_frame_pair
+
+        token = token or result["frames"][0]["token"]
+        render_frame_pair(built, truth, token, picture)
+        console.print(f"picture of frame {token} written to {picture}")
+    if result["frames_without_mask"]:
+        err_console.print(f"{result['frames_without_mask']} truth frames have no {mask}: scored everywhere")
+    if json_out is not None:
+        console.print(f"JSON written to {json_out}")
+
+
+def _number(value: float | None) -> str:
+    """A QA figure in few characters: integral values as integers, others to 4 significant digits."""
+    if value is None:
+        return "-"
+    if float(value).is_integer() and abs(value) < 1e12:
+        return f"{int(value):,}"
+    return f"{value:,.1f}" if abs(value) >= 1000 else f"{value:.4g}"
+
+
+def qa_tables(qa: dict) -> list[Table]:
+    """The QA columns as two narrow tables (numeric figures; flags and labels), each column name in
+    full on one line: they fit an 80-column terminal for names up to ~30 characters."""
+    numeric = {name: q for name, q in qa.items() if "fraction_true" not in q and "counts" not in q}
+    other = {name: q for name, q in qa.items() if name not in numeric}
+    width = max((len(name) for name in qa), default=6)
+    tables = []
+    if numeric:
+        table = Table(title="QA columns, numeric (ok frames)")
+        table.add_column("column", no_wrap=True, min_width=width)
+        for name in ("n", "null", "median", "min", "max"):
+            table.add_column(name, justify="right", overflow="fold")
+        for column, q in numeric.items():
+            table.add_row(column, _fmt(q["n"]), _fmt(q["null"]),
+                          *(_number(q.get(k)) for k in ("median", "min", "max")))
+        tables.append(table)
+    if other:
+        table = Table(title="QA columns, flags and labels (ok frames)")
+        table.add_column("column", no_wrap=True, min_width=width)
+        for name in ("n", "null"):
+            table.add_column(name, justify="right")
+        table.add_column("values", overflow="fold")
+        for column, q in other.items():
+            values = (f"{100 * q['fraction_true']:.1f}% true" if q.get("fraction_true") is not None
+                      else ", ".join(f"{k or '(empty)'}: {v}" for k, v in q.get("counts", {}).items()) or "-")
+            table.add_row(column, _fmt(q["n"]), _fmt(q["null"]), values)
+        tables.append(table)
+    return tables
+
+
+def stats_tables(stats: dict) -> list[Table]:
+    """Rich tables of a `dataset_stats` result."""
+    frames = Table(title=f"frames of {stats['root']}")
+    for name in ("total", "ok", "failed", "logs", "scenes"):
+        frames.add_column(name, justify="right")
+    frames.add_row(*(_fmt(stats["frames"][k]) for k in ("total", "ok", "failed", "logs", "scenes")))
+    tables = [frames]
+    if stats["failure_reasons"]:
+        reasons = Table(title="failure reasons")
+        reasons.add_column("reason")
+        reasons.add_column("frames", justify="right")
+        for reason, count in stats["failure_reasons"].items():
+            reasons.add_row(reason, _fmt(count))
+        tables.append(reasons)
+    classes = Table(title="voxels per class (ok frames)")
+    for name in ("id", "class", "voxels", "% of all", "% of occupied"):
+        classes.add_column(name, justify="right" if name != "class" else "left")
+    for c in stats["classes"]:
+        occupied = "-" if c["fraction_of_occupied"] is None else f"{100 * c['fraction_of_occupied']:.2f}"
+        classes.add_row(str(c["id"]), c["name"], _fmt(c["voxels"]), f"{100 * c['fraction']:.3f}", occupied)
+    tables.append(classes)
+    sizes = Table(title=f"stored bytes per frame (all members: {stats['bytes_per_frame']:,.0f} mean)")
+    for name in ("member", "frames", "mean", "median", "max", "total"):
+        sizes.add_column(name, justify="right" if name != "member" else "left")
+    for member, b in stats["bytes"].items():
+        sizes.add_row(member, _fmt(b["frames"]), f"{b['mean']:,.0f}", f"{b['median']:,.0f}", _fmt(b["max"]),
+                      _fmt(b["total"]))
+    tables.append(sizes)
+    tables += qa_tables(stats["qa"])
+    return tables
+
+
+def stats_cmd(out: str = typer.Argument(..., help="Dataset root.")) -> None:
+    """Frames ok/failed, failure reasons, class totals, bytes per frame, QA columns (from the manifest)."""
+    from nuplan_occ.stats import dataset_stats
+
+    for table in stats_tables(dataset_stats(out)):
+        console.print(table)
+
+
+def validate_cmd(out: str = typer.Argument(..., help="Dataset root.")) -> None:
+    """Check metadata, manifest and every stored member; exit 1 if any problem is found."""
+    from nuplan_occ.storage.validate import validate_dataset
+
+    problems = validate_dataset(out)
+    for problem in problems:
+        console.print(f"[red]problem[/red] {problem}", highlight=False)
+    if problems:
+        err_console.print(f"{len(problems)} problem(s) in {out}")
+        raise typer.Exit(code=1)
+    console.print(f"{out}: valid")
+
+
+def export_cmd(
+    out: str = typer.Argument(..., help="Dataset root."),
+    dest: Path = typer.Argument(..., help="Destination folder (local)."),
+    format: str = typer.Option(..., "--format", help="occ3d (<log>/<token>/labels.npz, free = 17), uniscene "
+                               "(nuplan_quantized_X_Y_Z/<token>.npy) or mesh (<log>/<scene>.glb and .ply)."),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", envvar="NUPLAN_DATA_ROOT",
+                                             help="mesh: the nuPlan data root the dataset was built from."),
+    token: Optional[str] = typer.Option(None, "--token", help="mesh: only this frame's scene, objects placed "
+                                        "at this frame (default: every scene, at its first frame)."),
+) -> None:
+    """Write the ok frames as Occ3D-style labels.npz or UniScenev2-style dense .npy files, or each scene's
+    reconstructed background and object surfaces as meshes (GLB for Blender, PLY for MeshLab)."""
+    if format == "mesh":
+        from nuplan_occ.export.meshes import export_meshes
+        from nuplan_occ.stages import PIPELINE
+
+        if data_root is None:
+            raise typer.BadParameter("--format mesh needs --data-root (or NUPLAN_DATA_ROOT)")
+        summary = export_meshes(out, dest, data_root, PIPELINE, token=token)
+        meshes = sum(len(s["meshes"]) for s in summary["scenes"])
+        console.print(f"{meshes} meshes of {len(summary['scenes'])} scenes exported to {dest} (scene frame); "
+                      f"list in {dest / 'mesh_export.json'}")
+        return
+    from nuplan_occ.export.formats import export_dataset
+
+    summary = export_dataset(out, dest, format)
+    console.print(f"{summary['frames']} frames exported to {dest} ({format}); remap and frame list in "
+                  f"{os.path.join(str(dest), 'export.json')}")
+    missing = {k: v for k, v in summary["frames_without"].items() if v}
+    if missing:
+        err_console.print(f"frames without a mask member (key omitted in their files): {json.dumps(missing)}")
+
+
+def compact_cmd(out: str = typer.Argument(..., help="Dataset root (path or fsspec URL).")) -> None:
+    """Fold the manifest's fragments into one large file, dropping superseded rows (readers see the same
+    rows; safe while builds run; run one compaction at a time)."""
+    from nuplan_occ.storage.compact import compact
+    from nuplan_occ.storage.errors import StorageError
+
+    try:
+        result = compact(out)
+    except StorageError as exc:
+        err_console.print(f"error: {exc}", highlight=False)
+        raise typer.Exit(code=1) from None
+    console.print(f"{out}: {result.files_before} manifest file(s), {result.rows_before:,} rows -> "
+                  f"{result.output} ({result.rows_after:,} visible rows)", highlight=False)
+
+
+def report_cmd(
+    out: str = typer.Argument(..., help="Dataset root."),
+    report_dir: Optional[Path] = typer.Option(None, "--out", help="Report folder (default OUT/report; required "
+                                               "for a dataset at a URL)."),
+    every: int = typer.Option(10, "--every", min=1, help="A top-down thumbnail every N frames of a scene."),
+    work_dir: Optional[Path] = typer.Option(None, help="The build's work folder holding build_log.jsonl (default "
+                                            "as for build)."),
+) -> None:
+    """Static HTML report of a build (opens from disk): summary, flagged scenes and frames, per-scene pages."""
+    from rich.progress import Progress
+
+    from nuplan_occ.report import write_report
+
+    if report_dir is None and "://" in out and not out.startswith("file://"):
+        raise typer.BadParameter(f"{out} is a URL: give --out, a local folder for the report")
+    with Progress(console=err_console, transient=True) as progress:
+        task = progress.add_task("report", total=None)
+        result = write_report(out, report_dir, every=every, work_root=work_dir,
+                              progress=lambda done, total, scene: progress.update(
+                                  task, completed=done, total=total, description=scene))
+    by_rule = ", ".join(f"{name} {count}" for name, count in result.rule_frames.items() if count) or "none"
+    console.print(f"{result.scenes} scenes ({result.rendered} rendered, {result.reused} unchanged), "
+                  f"{result.flagged_frames} flagged frames ({by_rule})", highlight=False)
+    console.print(f"report written to {result.index}", highlight=False, soft_wrap=True)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the dataset tools to the main CLI app."""
+    app.command("view")(view_cmd)
+    app.command("eval")(eval_cmd)
+    app.command("stats")(stats_cmd)
+    app.command("validate")(validate_cmd)
+    app.command("export")(export_cmd)
+    app.command("compact")(compact_cmd)
+
+
+    app.command("report")(report_cmd)

@@ -1,0 +1,105 @@
+"""Stage 10, write (the last frame stage): the frame's record (semantics, masks, instance, flow; identity,
+pose, filter columns, QA figures, status), which the runner encodes into the scene's tar shard at once
+(published atomically when the scene's last frame is in; the runner commits the rows). A frame whose sweep
+failed, or whose earlier frame stage failed, gets a record with status "failed" and the reason.
+
+Inputs: `scene`, `registration`, `outliers_removed` and `aggregate_outliers_removed` (qa_outliers_removed is
+their sum: the sweep's points the outlier test removed, on its own or in the aggregate), `map_status`, `map_alignment`, `object_boxes`,
+`object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`); prepared once per scene: `ego_speeds`;
+frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`. Frame output: `record` (FrameRecord). A
+row's `ego_to_global` is the refined pose corrected by the scene's map alignment: the pose the frame's labels
+were rasterized with, so the map drawn with it lands where the grid says. Instance ids and flow are 0 in the
+voxels the visibility stage emptied.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nuplan_occ.geometry import invert_transform
+from nuplan_occ.pipeline.frame_columns import agent_speed_columns, ego_speeds, point_coverage
+from nuplan_occ.pipeline.stage import Stage
+from nuplan_occ.storage import FrameRecord
+from nuplan_occ.voxel.box_labels import box_label_columns
+from nuplan_occ.voxel.compose import zero_emptied_objects
+from nuplan_occ.map_labels.map_align import MapAlignment
+
+
+@dataclass(frozen=True)
+class WriteParams:
+    """members: which per-frame arrays go into the shard."""
+
+    members: tuple[str, ...] = ("semantics", "mask_lidar", "mask_camera", "instance", "flow")
+
+
+def frame_columns(scene, position: int, registration, speeds, outliers: int, map_status: str,
+                  alignment: MapAlignment | None) -> dict:
+    """output_index (see `nuplan_occ.storage.clips`), filter columns and QA figures of one frame (qa_map_*: the
+    scene's map alignment, NaN without)."""
+    sweep = scene.sweeps[position]
+    correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
+    columns = {
+        "output_index": int(sweep.output_index),
+        "ego_speed": float(speeds[position]),
+        **agent_speed_columns(sweep.boxes_global),
+        "qa_pose_correction_m": float(np.linalg.norm(correction[:3, 3])),
+        "qa_pose_correction_deg": float(np.degrees(np.arccos(np.clip((np.trace(correction[:3, :3]) - 1) / 2, -1, 1)))),
+        "qa_pose_accepted": bool(registration.accepted[position]),
+        "qa_pose_fitness": float(registration.fitness[position]),
+        "qa_points": len(sweep.stored_cloud) if sweep.has_cloud else 0,
+        "qa_outliers_removed": int(outliers),
+        "qa_map_status": map_status,
+        "qa_map_aligned": bool(alignment is not None and alignment.applied),
+        "qa_map_offset_m": float(np.hypot(alignment.dx, alignment.dy)) if alignment is not None else float("nan"),
+        "qa_map_yaw_deg": float(np.degrees(alignment.dyaw)) if alignment is not None else float("nan"),
+        "qa_map_paint_points": int(alignment.n_points) if alignment is not None else 0,
+        "qa_map_paint_rms_m": float(alignment.rms_after) if alignment is not None else float("nan"),
+    }
+    return columns
+
+
+def prepare(inputs: dict, params: WriteParams) -> dict:
+    """Once per scene: `ego_speeds` (F,) m/s of every sweep from its refined pose (`ego_speeds`)."""
+    scene = inputs["scene"]
+    return {"ego_speeds": ego_speeds(inputs["registration"].poses, np.array([s.timestamp_us for s in scene.sweeps]))}
+
+
+def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
+    scene = inputs["scene"]
+    task = scene.task
+    registration = inputs["registration"]
+    alignment = inputs["map_alignment"]
+    position = frame["position"]
+    sweep = scene.sweeps[position]
+    pose = registration.poses[position] if alignment is None else alignment.correction @ registration.poses[position]
+    outliers = inputs["outliers_removed"][position] + inputs["aggregate_outliers_removed"].get(position, 0)
+    columns = frame_columns(scene, position, registration, inputs["ego_speeds"], outliers, inputs["map_status"],
+                            alignment)
+    record = FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
+                         scene_name=task.scene_name, frame_index=sweep.index, token=sweep.token,
+                         timestamp_us=sweep.timestamp_us, ego_to_global=pose, arrays={}, columns=columns)
+    if frame.get("failure"):
+        record.status, record.failure_reason = "failed", frame["failure"]
+        return {"record": record}
+    grids, semantics = frame["grids"], frame["final_semantics"]
+    zero_emptied_objects(grids, semantics)
+    arrays = {"semantics": semantics, "instance": grids.instance, "flow": grids.flow, **frame["masks"]}
+    record.arrays = {name: arrays[name] for name in params.members if name in arrays}
+    columns["qa_point_coverage"] = point_coverage(sweep.xyz, semantics > 0)
+    columns["qa_occupied_voxels"] = int(np.count_nonzero(semantics))
+    columns["qa_free_space_cleared"] = int(frame["free_cleared"])
+    columns["qa_unboxed_mover_voxels"] = int(grids.mover_voxels)
+    columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
+                                     scene.instance_ids, semantics, grids.instance))
+    if "mask_lidar" in arrays:
+        columns["qa_lidar_observed_fraction"] = np.count_nonzero(arrays["mask_lidar"]) / arrays["mask_lidar"].size
+    return {"record": record}
+
+
+STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "aggregate_outliers_removed", "map_status", "map_alignment",
+                                "object_boxes", "object_points", "grids", "final_semantics", "masks", "free_cleared"),
+              outputs=("record",), params_type=WriteParams, run=run,
+              code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "", per_frame=True,
+              prepare=prepare)

@@ -1,0 +1,161 @@
+"""Space carving of an analytic L-shaped object (box frame) seen from several sensor origins."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nuplan_occ.points import PointInputError
+from nuplan_occ.aggregation.carve import carve_object_solid, cells_holding_points, lattice_shape, segments_through_box
+
+SIZE = np.array([2.0, 1.0, 1.0])
+# the L: a full-length slab below z = 0.03 and a block behind x = 0.03 (faces inside lattice cells, not on
+# cell boundaries, so every cell is either inside, outside or crossed by a face)
+PARTS = [(np.array([-1.0, -0.5, -0.5]), np.array([1.0, 0.5, 0.03])),
+         (np.array([-1.0, -0.5, -0.5]), np.array([0.03, 0.5, 0.5]))]
+
+
+def _first_hits(origin: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Points where rays origin -> target (extended 3x) first enter the L (rays that miss it are dropped)."""
+    d = (targets - origin) * 3.0
+    best = np.full(len(d), np.inf)
+    for lo, hi in PARTS:
+        with np.errstate(divide="ignore"):
+            ta, tb = (lo - origin) / d, (hi - origin) / d
+        enter, leave = np.minimum(ta, tb).max(axis=1), np.maximum(ta, tb).min(axis=1)
+        hit = (enter <= leave) & (enter >= 0) & (enter <= 1)
+        best = np.where(hit, np.minimum(best, enter), best)
+    ok = np.isfinite(best)
+    return origin + best[ok, None] * d[ok]
+
+
+def _observations(origins: list[tuple[float, float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(7)
+    targets = rng.uniform(-SIZE / 2, SIZE / 2, size=(20_000, 3))
+    points, sensors = [], []
+    for origin in np.array(origins, dtype=np.float64):
+        hits = _first_hits(origin, targets)
+        points.append(hits)
+        sensors.append(np.repeat(origin[None], len(hits), axis=0))
+    return np.vstack(points), np.vstack(sensors)
+
+
+def _cells_touching_l(resolution: float) -> set:
+    counts, edge = lattice_shape(SIZE, resolution)
+    ijk = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
+    lo = ijk * edge - SIZE / 2
+    hi = lo + edge
+    touch = np.zeros(len(ijk), bool)
+    for plo, phi in PARTS:
+        touch |= np.all((lo < phi) & (hi > plo), axis=1)
+    return {tuple(c) for c in np.round(((lo + hi) / 2)[touch], 6)}
+
+
+def test_carving_recovers_the_l_shape_seen_from_around():
+    origins = [(6.0, 0.0, 0.3), (0.5, 0.0, 6.0), (0.5, 6.0, 0.3), (0.5, -6.0, 0.3), (5.0, 3.0, 4.0)]
+    points, sensors = _observations(origins)
+    solid = carve_object_solid(points, sensors, SIZE, resolution=0.1)
+    got = {tuple(c) for c in np.round(solid, 6)}
+    assert got == _cells_touching_l(0.1)
+
+
+def test_unobserved_space_stays_solid():
+    # seen only from behind, the object shows its full-height back face: nothing inside the box is carved
+    points, sensors = _observations([(-6.0, 0.0, 0.3)])
+    assert len(points) > 1000
+    solid = carve_object_solid(points, sensors, SIZE, resolution=0.1)
+    assert len(solid) == int(np.prod(lattice_shape(SIZE, 0.1)[0]))
+    # seen only from the front at the height of the notch, the notch is carved, the space behind the
+    # block's front face (which no ray reaches) is solid although no point lies there
+    points, sensors = _observations([(6.0, 0.0, 0.3)])
+    solid = carve_object_solid(points, sensors, SIZE, resolution=0.1)
+    assert np.any((solid[:, 0] < -0.5) & (solid[:, 2] > 0.2))
+    assert not np.any((solid[:, 0] > 0.1) & (solid[:, 2] > 0.1) & (np.abs(solid[:, 1]) < 0.3))
+
+
+def test_rays_through_the_box_carve_away_from_its_faces():
+    # seen only from behind nothing is carved; background rays crossing the notch along y at z = 0.25 carve
+    # the notch cells on their line, but not within through_margin_m of the box faces (|y| > 0.38 and the
+    # ray at x = 0.95 > 0.88 do not carve)
+    points, sensors = _observations([(-6.0, 0.0, 0.3)])
+    x = np.arange(0.15, 1.0, 0.1)
+    starts = np.stack([x, np.full_like(x, -6.0), np.full_like(x, 0.25)], 1)
+    ends = starts * [1.0, -1.0, 1.0]
+    solid = carve_object_solid(points, sensors, SIZE, resolution=0.1, through=(starts, ends), through_margin_m=0.12)
+    full = int(np.prod(lattice_shape(SIZE, 0.1)[0]))
+    carved = full - len(solid)
+    assert carved == 8 * 8  # x cells 0.15 .. 0.85, y cells -0.35 .. 0.35
+    on_line = (solid[:, 0] > 0.1) & (solid[:, 0] < 0.9) & np.isclose(solid[:, 2], 0.25)
+    assert set(np.round(solid[on_line, 1], 6)) == {-0.45, 0.45}
+
+
+def test_segments_through_a_yawed_box():
+    center, yaw, size = np.array([10.0, 5.0, 1.0]), np.pi / 2, np.array([4.0, 2.0, 2.0])
+    starts = np.array([[10.0, 0.0, 1.0], [12.0, 0.0, 1.0], [10.0, 0.0, 3.5]])  # along the box, beside it, above
+    ends = starts + [0.0, 20.0, 0.0]
+    starts_box, ends_box = segments_through_box(starts, ends, center, yaw, size)
+    assert len(starts_box) == 1
+    assert np.allclose(starts_box[0], [-5.0, 0.0, 0.0]) and np.allclose(ends_box[0], [15.0, 0.0, 0.0])
+
+
+def test_segments_through_box_picks_every_crossing_among_many():
+    """The compiled cull only preselects: the crossings are exactly those of the slab test on all segments,
+    including segments grazing a face, running inside a face's plane and starting inside the box."""
+    from nuplan_occ.aggregation.box_cull import segments_near_box
+    from nuplan_occ.aggregation.carve import clip_segments_to_box
+
+    rng = np.random.default_rng(4)
+    center, yaw, size = np.array([8.0, -3.0, 0.5]), 0.7, np.array([4.5, 1.9, 1.6])
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    ends = rng.uniform(-20, 30, (20000, 3))
+    starts = np.where(rng.random((20000, 1)) < 0.9, [1.5, 0.0, 1.6], rng.uniform(-20, 30, (20000, 3)))
+    grazing_box = np.array([[2.25, 0.95, -2.0], [2.25, 0.95, 2.0], [-3.0, 0.95, 0.0], [3.0, 0.95, 0.0],
+                            [0.0, 0.0, 0.0], [0.0, 0.0, 0.1]])  # along an edge, along a face, inside
+    grazing = (grazing_box @ R) + center
+    starts, ends = np.vstack([starts, grazing[::2]]), np.vstack([ends, grazing[1::2]])
+    starts_box, ends_box = (starts - center) @ R.T, (ends - center) @ R.T
+    t0, t1 = clip_segments_to_box(starts_box, ends_box, size / 2)
+    crossing = t0 < t1
+    assert segments_near_box(starts, ends, center, yaw, size / 2, 1e-6)[crossing].all()
+    got_starts, got_ends = segments_through_box(starts, ends, center, yaw, size)
+    assert 100 < len(got_starts) == crossing.sum() and crossing[-1]  # the segment inside the box
+    np.testing.assert_allclose(got_starts, starts_box[crossing], atol=1e-12)
+    np.testing.assert_allclose(got_ends, ends_box[crossing], atol=1e-12)
+
+
+def test_lattice_tiles_the_box_and_inputs_are_checked():
+    counts, edge = lattice_shape(np.array([4.5, 1.9, 1.55]), 0.1)
+    assert counts.tolist() == [45, 19, 16] and np.all(edge <= 0.1) and np.allclose(counts * edge, [4.5, 1.9, 1.55])
+    with pytest.raises(PointInputError, match="origins_box"):
+        carve_object_solid(np.zeros((3, 3)), np.zeros((2, 3)), SIZE)
+    with pytest.raises(PointInputError, match="size"):
+        carve_object_solid(np.zeros((3, 3)), np.zeros((3, 3)), np.array([1.0, 0.0, 1.0]))
+    assert len(carve_object_solid(np.zeros((0, 3)), np.zeros((0, 3)), SIZE, resolution=0.5)) == 4 * 2 * 2
+
+
+def test_cell_corner_points_reach_the_cells_corners():
+    from nuplan_occ.aggregation.carve import cell_corner_points, lattice_shape
+
+    size = np.array([0.4, 0.3, 0.2])
+    counts, edge = lattice_shape(size, 0.1)
+    cells = np.array([[-0.15, -0.1, -0.05], [0.15, 0.1, 0.05]])
+    points = cell_corner_points(cells, size, 0.1, inset=0.05)
+    assert points.shape == (16, 3)
+    np.testing.assert_allclose(points[:8].min(axis=0), cells[0] - 0.45 * edge)
+    np.testing.assert_allclose(points[8:].max(axis=0), cells[1] + 0.45 * edge)
+    # every corner point stays in its own cell
+    ijk = np.floor((points + size / 2) / edge).astype(int)
+    assert np.array_equal(ijk[:8], np.repeat([[0, 0, 0]], 8, axis=0)) and np.array_equal(ijk[8:], np.repeat([[3, 2, 1]], 8, axis=0))
+
+
+def test_cells_holding_points_marks_exactly_the_observed_cells():
+    size = np.array([1.0, 0.6, 0.4])
+    counts, edge = lattice_shape(size, 0.1)
+    ijk = np.stack(np.unravel_index(np.arange(int(np.prod(counts))), tuple(counts)), axis=1)
+    cells = (ijk + 0.5) * edge - size / 2
+    points = np.array([[0.43, 0.21, -0.17], [-0.05, 0.0, 0.0], [3.0, 0.0, 0.0]])  # the last one is outside
+    held = cells_holding_points(cells, points, size, 0.1)
+    assert held.sum() == 2
+    for point in points[:2]:  # each inside point is in one of the two marked cells
+        assert (np.abs(cells[held] - point).max(axis=1) <= edge.max() / 2 + 1e-9).sum() == 1
