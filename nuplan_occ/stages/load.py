@@ -1,4 +1,4 @@
-"""Stage 0, load: read one scene of a log (sweeps in the ego frame, boxes, logged poses, calibration),
+"""load: read one scene of a log (sweeps in the ego frame, boxes, logged poses, calibration),
 with context sweeps of the same log around it (aggregated, not written).
 
 Inputs: the scene task. Outputs: `scene` (SceneData). Not cached: reading is cheaper than storing. The
@@ -20,22 +20,23 @@ from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.io.types import LidarFrame, PointCloud
 from nuplan_occ.io.errors import MapError
 from nuplan_occ.pipeline.scene import SceneData, Sweep, output_slots
+from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.spilled_clouds import SpilledClouds
 from nuplan_occ.pipeline.stage import Stage
 
 
 @dataclass(frozen=True)
 class LoadParams:
-    """rate_hz: output frame rate; sweeps are 20 Hz, every (20 / rate_hz)-th sweep of the log is written.
-    context_seconds: sweeps of the same log this long before and after the scene are loaded too (every
-    context_stride-th one) and aggregated, never written: objects and ground seen from more viewpoints, and
-    the first and last frames of a scene get context on both sides. Measured on the synthetic `small` preset
-    (0.8 s scenes of a 4 s log): ..."""
+    rate_hz: float = param(10.0, "output frame rate: every (sweep_rate_hz / rate_hz)-th sweep of the log is "
+                           "written", unit="Hz", low=0.0, low_open=True)
+    sweep_rate_hz: float = param(20.0, "the log's LiDAR sweep rate", unit="Hz", low=0.0, low_open=True)
+    context_seconds: float = param(1.0, "sweeps of the same log this long before and after the scene are loaded "
+                                   "too and aggregated, never written", unit="s", low=0.0)
+    context_stride: int = param(2, "every n-th context sweep is loaded", low=1)
 
-    rate_hz: float = 10.0
-    sweep_rate_hz: float = 20.0
-    context_seconds: float = 1.0
-    context_stride: int = 2
+    def __post_init__(self) -> None:
+        if self.rate_hz > self.sweep_rate_hz:
+            raise ValueError(f"rate_hz {self.rate_hz:g} exceeds the sweep rate {self.sweep_rate_hz:g} Hz")
 
 
 def context_frames(log_frames: list[LidarFrame], own: list[LidarFrame], seconds: float, stride: int) -> list[LidarFrame]:
@@ -90,6 +91,25 @@ def run(inputs: dict, params: LoadParams) -> dict:
     return {"scene": scene}
 
 
-STAGE = Stage("load", inputs=("task",), outputs=("scene",), params_type=LoadParams, run=run,
-              code=("nuplan_occ.io.reader", "nuplan_occ.io.pcd", "nuplan_occ.pipeline.spilled_clouds"), cache=False,
-              doc=__doc__ or "")
+def sources(task, params: LoadParams) -> list[Path]:
+    """The files `run` reads for the task besides the log's DB: the point cloud blobs of the scene's sweeps and
+    of its context sweeps, and the log's map file (or, without one, the maps folder it was looked for in)."""
+    with NuplanLog(task.db_path, task.sensor_root) as log:
+        frames = context_frames(log.frames, log.frames_of_scene(task.scene_token), params.context_seconds,
+                                params.context_stride)
+        blobs = []
+        for frame in frames:
+            try:
+                blobs.append(log.blob_path(frame))
+            except NuplanFormatError:  # a path that is never opened: its frame fails in run
+                continue
+        map_name = log.meta.map_name
+    try:
+        map_file = find_map(Path(task.maps_root), map_name)
+    except MapError:
+        map_file = Path(task.maps_root) / map_name
+    return [*blobs, map_file]
+
+
+STAGE = Stage("load", inputs=("task",), outputs=("scene",), params_type=LoadParams, run=run, cache=False,
+              sources=sources)
