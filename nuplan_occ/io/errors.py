@@ -46,3 +46,13 @@ class MapError(NuplanFormatError):
 
 class MissingLogError(NuplanFormatError):
     """A requested log (by name or path) that is not found under the data root."""
+
+
+class OutsideDataRootError(NuplanFormatError):
+    """A file name in a log (e.g. lidar_pc.filename) that is absolute or climbs out of its folder with '..';
+    the file is never opened and the message never repeats the name. path: the log DB that names it."""
+
+
+class PoseGapError(NuplanFormatError):
+    """A frame time that no usable ego_pose rows bracket closely enough to interpolate a pose (rows missing,
+    or dropped as non-finite or absurd). path: the log DB."""

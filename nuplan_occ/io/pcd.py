@@ -4,17 +4,36 @@ Points are returned in the "lidar" frame, the frame of the DB's `MergedPointClou
 The record layout is built from the header's FIELDS / SIZE / TYPE (little-endian, packed); only
 `DATA binary` is accepted, every COUNT must be 1, and bytes after the last record are ignored (the devkit
 notes trailing garbage in real files). Every malformed input raises PointCloudError.
+
+`read_pcd` decodes what the file holds; `usable_points` is the gate a sweep passes before the pipeline uses
+it (the reader applies it in `NuplanLog.load_sweep`): points that no LiDAR can have measured are dropped and
+counted, and a sweep that is empty or mostly such points fails.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import dataclass
+
 from nuplan_occ.io.errors import PointCloudError
 from nuplan_occ.io.types import PointCloud
 
 MAX_HEADER_BYTES = 64 * 1024
 """The header (everything up to and including the DATA line) must fit in this many bytes."""
+
+MAX_POINTS = 4_000_000
+"""A PCD may hold at most this many points (~100 MB decoded): merged nuPlan sweeps hold a few hundred thousand,
+so a larger POINTS is a damaged header, refused before anything is allocated."""
+
+MAX_RANGE_M = 250.0
+"""Points farther than this from the merged LiDAR frame's origin are dropped: the longest-range LiDAR of the
+nuPlan car measures to about 200 m and the others sit within a few metres of that origin, so nothing farther
+is a return. The grid itself only spans 71 m of horizontal range (its corners)."""
+
+MIN_USABLE_FRACTION = 0.5
+"""A sweep fails when fewer than this fraction of its points are usable: a few bad returns are noise, more is a
+broken sensor or file."""
 
 _KINDS = {"F": "f", "I": "i", "U": "u"}
 _SIZES = {1, 2, 4, 8}
@@ -109,6 +128,8 @@ def read_pcd(buf: bytes, source: str) -> PointCloud:
         raise PointCloudError(source, f"unsupported PCD DATA {' '.join(data) or '(empty)'} (only 'binary')")
     dtype = _record_dtype(header, source)
     n = _point_count(header, source)
+    if n > MAX_POINTS:
+        raise PointCloudError(source, f"PCD POINTS {n} exceeds the {MAX_POINTS} points a sweep may hold")
     needed = n * dtype.itemsize
     if len(buf) - offset < needed:
         raise PointCloudError(
@@ -127,6 +148,47 @@ def read_pcd(buf: bytes, source: str) -> PointCloud:
         lidar_info = _int_column(records["lidar_info"], 0, 4, np.int8) if "lidar_info" in names \
             else np.full(n, -1, dtype=np.int8)
     return PointCloud(xyz=xyz, intensity=intensity, ring=ring, lidar_info=lidar_info, frame="lidar")
+
+
+@dataclass(frozen=True)
+class DroppedPoints:
+    """Points of a sweep that `usable_points` dropped: non-finite coordinates, farther than MAX_RANGE_M, or
+    exactly at the origin (the null return some drivers write for a ray without an echo)."""
+
+    non_finite: int = 0
+    too_far: int = 0
+    at_origin: int = 0
+
+    @property
+    def total(self) -> int:
+        return self.non_finite + self.too_far + self.at_origin
+
+    def __str__(self) -> str:
+        return (f"{self.non_finite} non-finite, {self.too_far} beyond {MAX_RANGE_M:g} m, "
+                f"{self.at_origin} at the sensor origin")
+
+
+def usable_points(cloud: PointCloud, source: str) -> tuple[PointCloud, DroppedPoints]:
+    """The points of a "lidar"-frame sweep a LiDAR can have measured, and what was dropped (see DroppedPoints).
+
+    PointCloudError (naming `source`) when the sweep holds no point or fewer than MIN_USABLE_FRACTION of its
+    points are usable.
+    """
+    n = len(cloud)
+    if n == 0:
+        raise PointCloudError(source, "PCD holds no points")
+    xyz = cloud.xyz
+    finite = np.isfinite(xyz).all(axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        squared = np.einsum("ij,ij->i", xyz, xyz)
+    near = finite & (squared <= MAX_RANGE_M ** 2)
+    keep = near & (squared > 0.0)
+    dropped = DroppedPoints(non_finite=int(n - finite.sum()), too_far=int(finite.sum() - near.sum()),
+                            at_origin=int(near.sum() - keep.sum()))
+    usable = n - dropped.total
+    if usable < MIN_USABLE_FRACTION * n:
+        raise PointCloudError(source, f"only {usable} of the PCD's {n} points are usable ({dropped})")
+    return (cloud if usable == n else cloud.subset(keep)), dropped
 
 
 def encode_pcd(cloud: PointCloud) -> bytes:

@@ -4,9 +4,22 @@ Frames (see nuplan_occ.io.types): "global" = map UTM metres; "ego" = rear axle a
 "lidar" = frame of the DB's MergedPointCloud lidar row (T_ego_from_lidar = its stored extrinsic).
 Timestamps are integer µs. Tokens are exposed as lowercase hex of whatever BLOB length the DB stores.
 
-The DB is opened read-only; columns are selected by name (extra columns are ignored), NULL chain ends
-become None. A frame's pose is interpolated from the ego_pose table at the lidar_pc timestamp, because
-ego_pose rows linked by token carry slightly different timestamps (format reference, 2.1).
+The DB is opened read-only and never written (no index is created in it); columns are selected by name
+(extra columns are ignored), NULL chain ends become None. Large tables are read as columns, never as one
+Python object per row: ego_pose at opening, image on first use, lidar_box one time window (a scene) per
+query. A frame's pose is interpolated from the ego_pose table at the lidar_pc timestamp, because ego_pose
+rows linked by token carry slightly different timestamps (format reference, 2.1).
+
+Every value is checked where it enters, and a bad one costs only what it touches:
+- ego_pose rows with a NULL, non-finite or absurd position (beyond MAX_GLOBAL_COORD_M) or quaternion (norm
+  off 1 by more than QUATERNION_NORM_TOLERANCE) are dropped and counted in `notes`; a frame whose time no
+  usable rows bracket within POSE_GAP_LIMIT_US (or lies more than POSE_EDGE_LIMIT_US beyond the first or
+  last one) gets no pose: PoseGapError, never an extrapolation;
+- lidar_pc rows sharing a timestamp: the first in chain order (then token order) is used, the others get a
+  `problem`; a filename that is absolute or holds '..' gets a `problem` and is never opened;
+- lidar_box rows with a NULL, non-finite or absurd centre, size or yaw, or naming a missing track or a track
+  of unknown category, fail the frames they belong to (SchemaError naming table, token and column);
+- point clouds pass `nuplan_occ.io.pcd.usable_points`.
 """
 
 from __future__ import annotations
@@ -14,19 +27,21 @@ from __future__ import annotations
 import re
 import sqlite3
 from functools import cached_property
-from itertools import groupby
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from urllib.parse import quote
 
 import numpy as np
 
 from nuplan_occ.geometry import invert_transform, make_transform, quaternion_to_matrix
 from nuplan_occ.io.data_root import guess_sensor_root
-from nuplan_occ.io.errors import DatabaseError, MissingBlobError, PointCloudError, SchemaError, UnsafePickleError
-from nuplan_occ.io.pcd import read_pcd
+from nuplan_occ.io.errors import (
+    DatabaseError, MissingBlobError, OutsideDataRootError, PointCloudError, PoseGapError, SchemaError,
+    UnsafePickleError,
+)
+from nuplan_occ.io.pcd import MAX_POINTS, DroppedPoints, read_pcd, usable_points
 from nuplan_occ.io.pickles import load_calibration_blob
 from nuplan_occ.io.types import (
-    LIDAR_CHANNEL, NUPLAN_CATEGORIES, Boxes, CameraCalibration, EgoPoseRecord, ImageRecord, LidarCalibration,
+    LIDAR_CHANNEL, NUPLAN_CATEGORIES, Boxes, CameraCalibration, EgoPoseTable, ImageTable, LidarCalibration,
     LidarFrame, LogMeta, PointCloud, SceneRecord, TrackRecord,
 )
 
@@ -43,12 +58,36 @@ _REQUIRED: dict[str, tuple[str, ...]] = {
 }
 """Tables and columns without which a log cannot be read. camera and image are optional tables."""
 
-_BOX_COLUMNS = ("lidar_pc_token", "token", "track_token", "x", "y", "z", "length", "width", "height", "yaw",
-                "vx", "vy", "vz")
+_BOX_VALUES = ("x", "y", "z", "length", "width", "height", "yaw", "vx", "vy", "vz")
+"""lidar_box value columns in the order Boxes takes them (centre, size, yaw, velocity)."""
+
+MAX_GLOBAL_COORD_M = 1e7
+"""|x| and |y| of an ego pose or box centre above this (m) are absurd: UTM eastings stay within 1e6 m and
+northings within 1e7 m. |z| must stay within 1e4 m."""
+
+QUATERNION_NORM_TOLERANCE = 0.01
+"""An ego_pose quaternion is usable when its norm is within this of 1 (the DB stores unit quaternions)."""
+
+MAX_BOX_SIZE_M = 100.0
+"""A box side must be > 0 and at most this (m); the longest road vehicles are about 25 m."""
+
+POSE_GAP_LIMIT_US = 100_000
+"""A frame's pose is interpolated between the usable ego_pose rows around its time only when they are at most
+0.1 s apart (ego_pose is logged at about 100 Hz: 10 rows missing). Linear interpolation over 0.1 s is off by
+v^2 t^2 / (8 r): under 2 cm for 10 m/s on a 10 m radius."""
+
+POSE_EDGE_LIMIT_US = 50_000
+"""Before the first or after the last usable ego_pose row, a frame's pose is extrapolated from the two rows
+at that end (constant velocity and turn rate) only up to 0.05 s: half a 10 Hz output period."""
+
+BOX_WINDOW_US = 10_000_000
+"""`boxes(frame)` reads the boxes of this much time (µs) around the frame in one query and keeps them, so
+walking a log frame by frame costs one table scan per window on a DB without a lidar_pc_token index."""
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
-    """Spherical interpolation of unit quaternions [w, x, y, z] (shortest arc); alpha in [0, 1]."""
+    """Spherical interpolation of unit quaternions [w, x, y, z] (shortest arc); alpha in [0, 1] interpolates,
+    outside it extrapolates along the same arc."""
     q0 = q0 / np.linalg.norm(q0)
     q1 = q1 / np.linalg.norm(q1)
     dot = float(np.dot(q0, q1))
@@ -58,7 +97,41 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
         q = q0 + alpha * (q1 - q0)
         return q / np.linalg.norm(q)
     theta = np.arccos(dot)
-    return (np.sin((1.0 - alpha) * theta) * q0 + np.sin(alpha * theta) * q1) / np.sin(theta)
+    q = (np.sin((1.0 - alpha) * theta) * q0 + np.sin(alpha * theta) * q1) / np.sin(theta)
+    return q / np.linalg.norm(q)
+
+
+def leaves_folder(name: str) -> bool:
+    """True when a stored relative file name is absolute, holds a '..' part or a NUL byte: joined to a folder
+    it could name a file outside it. (Symlinks inside the folder are followed: the user placed them.)"""
+    path = PurePosixPath(name.replace("\\", "/"))
+    return "\x00" in name or path.is_absolute() or ".." in path.parts or bool(re.match(r"^[A-Za-z]:", name))
+
+
+def _numeric(column: str) -> str:
+    """SQL for a column's value when it is a number, else NULL (TEXT or BLOB in a FLOAT column)."""
+    return f"CASE WHEN typeof({column}) IN ('integer', 'real') THEN {column} END"
+
+
+class SceneBoxes:
+    """The lidar_box rows of a set of frames, read in one query; `of(frame)` gives one frame's boxes.
+
+    A frame with a bad row (see the module docstring) raises SchemaError for that frame only.
+    """
+
+    def __init__(self, by_frame: dict[str, Boxes], problems: dict[str, SchemaError]):
+        self._by_frame = by_frame
+        self._problems = problems
+
+    def covers(self, frame: LidarFrame) -> bool:
+        """True when the query included this frame."""
+        return frame.token in self._by_frame or frame.token in self._problems
+
+    def of(self, frame: LidarFrame) -> Boxes:
+        """The frame's boxes in the "global" frame (sorted by token)."""
+        if frame.token in self._problems:
+            raise self._problems[frame.token]
+        return self._by_frame.get(frame.token) or Boxes.empty("global")
 
 
 class NuplanLog:
@@ -69,9 +142,10 @@ class NuplanLog:
     `<db>/../../../sensor_blobs` (the released layout), which may not exist (load_points then raises).
 
     A lidar_pc row with a NULL scene_token gets scene_token "" (the devkit's synthetic DDL allows NULL).
+    notes: one line per kind of row dropped at opening (e.g. unusable ego_pose rows), for the build to report.
     Point helpers: points_to_ego(cloud, log) and points_to_global(cloud, log, frame) below.
 
-    Raises DatabaseError (missing or non-SQLite file) and SchemaError (missing table/column/row, a
+    Raises DatabaseError (missing, empty or non-SQLite file) and SchemaError (missing table/column/row, a
     non-BLOB token, a missing or duplicated MergedPointCloud lidar row, bad calibration) on opening.
     """
 
@@ -79,6 +153,8 @@ class NuplanLog:
         self.path = Path(db_path)
         if not self.path.is_file():
             raise DatabaseError(self.path, "log database file not found")
+        if self.path.stat().st_size == 0:
+            raise DatabaseError(self.path, "log database file is empty (0 bytes)")
         guessed = guess_sensor_root(self.path)
         self.sensor_root = Path(sensor_root) if sensor_root is not None else guessed
         try:
@@ -86,6 +162,7 @@ class NuplanLog:
         except sqlite3.DatabaseError as exc:
             raise DatabaseError(self.path, f"cannot open SQLite database ({exc})") from None
         self._db.row_factory = sqlite3.Row
+        self.notes: list[str] = []
         try:
             self._load()
         except BaseException:
@@ -94,7 +171,7 @@ class NuplanLog:
         self._frames_by_scene: dict[str, list[LidarFrame]] = {}
         for frame in self.frames:
             self._frames_by_scene.setdefault(frame.scene_token, []).append(frame)
-        self._box_cache: dict[bytes, list[sqlite3.Row]] | None = None
+        self._window: SceneBoxes | None = None
 
     def _load(self) -> None:
         try:
@@ -105,14 +182,11 @@ class NuplanLog:
             self.meta = self._read_meta()
             self.lidar = self._read_lidar()
             self.cameras = self._read_cameras()
-            self.ego_poses, self._pose_q = self._read_ego_poses()
+            self.ego_poses = self._read_ego_poses()
             self.scenes = self._read_scenes()
             self.frames = self._read_frames()
-            self.images = self._read_images()
         except sqlite3.DatabaseError as exc:
             raise SchemaError(self.path, f"query failed ({exc})") from None
-        self._pose_times = np.array([p.timestamp_us for p in self.ego_poses], dtype=np.int64)
-        self._pose_xyz = np.array([p.T_global_from_ego[:3, 3] for p in self.ego_poses]).reshape(-1, 3)
 
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
@@ -128,6 +202,8 @@ class NuplanLog:
     # ------------------------------------------------------------------ schema helpers
     def _read_columns(self) -> dict[str, set[str]]:
         tables = [r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+        if not tables:
+            raise DatabaseError(self.path, "log database holds no tables (an empty SQLite file)")
         columns = {t: {r["name"] for r in self._db.execute(f'PRAGMA table_info("{t}")')} for t in tables}
         for table, needed in _REQUIRED.items():
             if table not in columns:
@@ -137,9 +213,15 @@ class NuplanLog:
                 raise SchemaError(self.path, f"table {table} lacks column(s) {', '.join(missing)}")
         return columns
 
+    def _column(self, table: str, name: str, numeric: bool = False) -> str:
+        """SQL of a named column (NULL if the table lacks this optional column); numeric: NULL unless a number."""
+        if name not in self._columns[table]:
+            return f"NULL AS {name}"
+        return f"{_numeric(name)} AS {name}" if numeric else name
+
     def _select(self, table: str, names: tuple[str, ...], tail: str = "", params: tuple = ()) -> list[sqlite3.Row]:
         """Rows of named columns; optional columns absent from the table come back as NULL."""
-        cols = ", ".join(n if n in self._columns[table] else f"NULL AS {n}" for n in names)
+        cols = ", ".join(self._column(table, n) for n in names)
         return self._db.execute(f"SELECT {cols} FROM {table} {tail}", params).fetchall()
 
     def _hex(self, value: object, where: str) -> str | None:
@@ -217,36 +299,36 @@ class NuplanLog:
             for r in rows
         ]
 
-    def _read_ego_poses(self) -> tuple[list[EgoPoseRecord], np.ndarray]:
-        """The ego_pose rows in time order, and their unit quaternions [w, x, y, z] as an (N, 4) array."""
-        rows = self._select("ego_pose", ("token", "timestamp", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy",
-                                         "vz", "acceleration_x", "acceleration_y", "acceleration_z",
-                                         "angular_rate_x", "angular_rate_y", "angular_rate_z", "epsg"),
-                            "ORDER BY timestamp, token")
-        poses, quaternions = [], np.zeros((len(rows), 4))
-        for i, r in enumerate(rows):
-            token = self._token(r["token"], "ego_pose.token")
-            try:
-                q = np.array([r["qw"], r["qx"], r["qy"], r["qz"]], dtype=np.float64)
-                t_us = int(r["timestamp"])
-            except (TypeError, ValueError):
-                raise SchemaError(self.path, f"ego_pose {token} has a NULL or non-numeric timestamp or quaternion") from None
-            if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
-                raise SchemaError(self.path, f"ego_pose {token} has an invalid quaternion {q.tolist()}")
-            quaternions[i] = q / np.linalg.norm(q)
-
-            def vec(*names: str) -> np.ndarray:
-                return np.array([float(r[n] or 0.0) for n in names])
-
-            poses.append(EgoPoseRecord(
-                token=token, timestamp_us=t_us,
-                T_global_from_ego=make_transform(quaternion_to_matrix(q), vec("x", "y", "z")),
-                velocity=vec("vx", "vy", "vz"),
-                acceleration=vec("acceleration_x", "acceleration_y", "acceleration_z"),
-                angular_rate=vec("angular_rate_x", "angular_rate_y", "angular_rate_z"),
-                epsg=int(r["epsg"] or 0),
-            ))
-        return poses, quaternions
+    def _read_ego_poses(self) -> EgoPoseTable:
+        """The usable ego_pose rows as columns (see the module docstring); the others are counted in notes."""
+        timestamp = "CASE WHEN typeof(timestamp) = 'integer' THEN timestamp END"
+        values = ", ".join(_numeric(c) for c in ("x", "y", "z", "qw", "qx", "qy", "qz"))
+        rows = self._db.execute(f"SELECT token, {timestamp}, {values} FROM ego_pose "
+                                "ORDER BY timestamp, token").fetchall()
+        table = np.array([r[1:] for r in rows], dtype=np.float64).reshape(-1, 8)
+        tokens = [r[0] for r in rows]
+        del rows
+        if any(not isinstance(t, bytes) or not t for t in tokens):
+            raise SchemaError(self.path, "ego_pose.token holds a NULL or non-BLOB token")
+        times, xyz, q = table[:, 0], table[:, 1:4], table[:, 4:8]
+        with np.errstate(invalid="ignore"):
+            norm = np.linalg.norm(q, axis=1)
+            usable = (np.isfinite(table).all(axis=1) & (np.abs(xyz[:, :2]) <= MAX_GLOBAL_COORD_M).all(axis=1)
+                      & (np.abs(xyz[:, 2]) <= 1e4) & (np.abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE))
+        times_int = np.where(usable, times, 0).astype(np.int64)
+        repeated = np.zeros(len(times), dtype=bool)
+        kept = np.flatnonzero(usable)
+        repeated[kept[1:]] = np.diff(times_int[kept]) == 0  # rows are in (time, token) order: keep the first
+        if (~usable).any():
+            self.notes.append(f"{self.path}: {int((~usable).sum())} of {len(times)} ego_pose rows dropped "
+                              "(NULL, non-finite or absurd position or quaternion)")
+        if repeated.any():
+            self.notes.append(f"{self.path}: {int(repeated.sum())} ego_pose rows repeat a timestamp; the first "
+                              "by token is used")
+        keep = usable & ~repeated
+        return EgoPoseTable(tokens=np.array([t for t, k in zip(tokens, keep) if k], dtype=bytes).reshape(-1),
+                            timestamps_us=times_int[keep], xyz=xyz[keep].copy(),
+                            quaternions=q[keep] / norm[keep, None])
 
     def _read_scenes(self) -> list[SceneRecord]:
         rows = self._select("scene", ("token", "name", "goal_ego_pose_token", "roadblock_ids"), "ORDER BY name")
@@ -258,53 +340,85 @@ class NuplanLog:
         ]
 
     def _read_frames(self) -> list[LidarFrame]:
+        """lidar_pc rows of the merged LiDAR in time order; rows sharing a timestamp in chain order (a row whose
+        prev_token is another row of the same time comes after it), then token order."""
         rows = self._select("lidar_pc", _REQUIRED["lidar_pc"], "WHERE lidar_token = ? ORDER BY timestamp, token",
                             (bytes.fromhex(self.lidar.token),))
-        frames = []
-        for i, r in enumerate(rows):
+        untimed = [r for r in rows if not isinstance(r["timestamp"], int)]
+        if untimed:
+            self.notes.append(f"{self.path}: {len(untimed)} lidar_pc rows without an integer timestamp skipped")
+            rows = [r for r in rows if isinstance(r["timestamp"], int)]
+        ordered = []
+        for start in range(len(rows)):
+            if start and rows[start]["timestamp"] == rows[start - 1]["timestamp"]:
+                continue
+            end = start
+            while end + 1 < len(rows) and rows[end + 1]["timestamp"] == rows[start]["timestamp"]:
+                end += 1
+            group = rows[start:end + 1]
+            tokens = {r["token"] for r in group}
+            ordered += sorted(group, key=lambda r: (r["prev_token"] in tokens, r["token"]))
+        frames: list[LidarFrame] = []
+        first_at_time = ""
+        for i, r in enumerate(ordered):
             token = self._token(r["token"], "lidar_pc.token")
-            if r["timestamp"] is None or r["filename"] is None:
-                raise SchemaError(self.path, f"lidar_pc {token} has a NULL timestamp or filename")
+            filename = r["filename"]
+            problem = ""
+            repeated = i > 0 and r["timestamp"] == ordered[i - 1]["timestamp"]
+            first_at_time = first_at_time if repeated else token
+            if repeated:
+                problem = (f"lidar_pc {token} repeats the timestamp {r['timestamp']} of lidar_pc "
+                           f"{first_at_time}; the earlier row in chain order is used")
+            elif not isinstance(filename, str) or not filename:
+                problem = f"lidar_pc {token} has no filename"
+            elif leaves_folder(filename):
+                problem = (f"lidar_pc {token}: its filename leaves the sensor_blobs folder (absolute "
+                           "or '..' path); not opened")
             frames.append(LidarFrame(
-                token=token, timestamp_us=int(r["timestamp"]), filename=str(r["filename"]),
+                token=token, timestamp_us=int(r["timestamp"]), filename=str(filename or ""),
                 scene_token=self._hex(r["scene_token"], "lidar_pc.scene_token") or "",
                 ego_pose_token=self._hex(r["ego_pose_token"], "lidar_pc.ego_pose_token") or "",
                 lidar_token=self.lidar.token,
                 prev_token=self._hex(r["prev_token"], "lidar_pc.prev_token"),
-                next_token=self._hex(r["next_token"], "lidar_pc.next_token"), index=i,
+                next_token=self._hex(r["next_token"], "lidar_pc.next_token"), index=i, problem=problem,
             ))
         return frames
 
-    def _read_images(self) -> list[ImageRecord]:
+    @cached_property
+    def images(self) -> ImageTable:
+        """The image rows as columns (read on first use; empty without an image table)."""
         if "image" not in self._columns:
-            return []
-        rows = self._select("image", ("token", "timestamp", "filename_jpg", "camera_token", "ego_pose_token",
-                                      "prev_token", "next_token"), "ORDER BY timestamp, token")
-        return [
-            ImageRecord(token=self._token(r["token"], "image.token"), timestamp_us=int(r["timestamp"] or 0),
-                        filename_jpg=str(r["filename_jpg"] or ""),
-                        camera_token=self._hex(r["camera_token"], "image.camera_token") or "",
-                        ego_pose_token=self._hex(r["ego_pose_token"], "image.ego_pose_token") or "",
-                        prev_token=self._hex(r["prev_token"], "image.prev_token"),
-                        next_token=self._hex(r["next_token"], "image.next_token"))
-            for r in rows
-        ]
+            empty = np.zeros(0, dtype=bytes)
+            return ImageTable(empty, np.zeros(0, dtype=np.int64), empty, empty)
+        rows = self._db.execute(f"SELECT token, camera_token, filename_jpg, {_numeric('timestamp')} FROM image "
+                                "ORDER BY timestamp, token").fetchall()
+        column = [np.array([r[k] if isinstance(r[k], bytes) else str(r[k] or "").encode() for r in rows],
+                           dtype=bytes).reshape(-1) for k in range(3)]
+        times = np.array([r[3] if r[3] is not None else -1 for r in rows], dtype=np.int64).reshape(-1)
+        return ImageTable(tokens=column[0], timestamps_us=times, camera_tokens=column[1], filenames=column[2])
 
     @cached_property
-    def tracks(self) -> dict[str, TrackRecord]:
-        """track token -> TrackRecord. SchemaError if a track's category is unknown or not one of
-        NUPLAN_CATEGORIES (read on first use, so a log with bad labels still gives poses and points)."""
+    def _track_table(self) -> tuple[dict[str, TrackRecord], dict[str, str]]:
+        """(usable tracks, track token -> problem of the others: unknown category)."""
         names = {self._token(r["token"], "category.token"): r["name"] for r in self._select("category", ("token", "name"))}
-        tracks = {}
+        tracks, problems = {}, {}
         for r in self._select("track", ("token", "category_token", "width", "length", "height")):
             token = self._token(r["token"], "track.token")
             category = names.get(self._hex(r["category_token"], "track.category_token"))
             if category not in NUPLAN_CATEGORIES:
-                raise SchemaError(self.path, f"track {token} has unknown category {category!r}; "
-                                             f"expected one of {', '.join(NUPLAN_CATEGORIES)}")
-            tracks[token] = TrackRecord(token=token, category=category, width=float(r["width"] or 0.0),
-                                        length=float(r["length"] or 0.0), height=float(r["height"] or 0.0))
-        return tracks
+                problems[token] = (f"track {token} has unknown category {category!r}; expected one of "
+                                   f"{', '.join(NUPLAN_CATEGORIES)}")
+                continue
+            size = [r[c] if isinstance(r[c], (int, float)) else 0.0 for c in ("width", "length", "height")]
+            tracks[token] = TrackRecord(token=token, category=category, width=float(size[0]),
+                                        length=float(size[1]), height=float(size[2]))
+        return tracks, problems
+
+    @property
+    def tracks(self) -> dict[str, TrackRecord]:
+        """track token -> TrackRecord of the tracks with a known category (one of NUPLAN_CATEGORIES); a box of
+        any other track fails its frame (read on first use, so a log with bad labels still gives poses and points)."""
+        return self._track_table[0]
 
     # ------------------------------------------------------------------ public queries
     def frames_of_scene(self, scene_token: str) -> list[LidarFrame]:
@@ -313,94 +427,167 @@ class NuplanLog:
 
     def ego_pose_at(self, timestamp_us: int) -> np.ndarray:
         """T_global_from_ego (4, 4) at a time (µs): slerp of rotation and linear translation between the two
-        ego_pose rows around it; the first/last pose before/after the table's time range."""
-        n = len(self._pose_times)
+        usable ego_pose rows around it, when at most POSE_GAP_LIMIT_US apart; up to POSE_EDGE_LIMIT_US before the
+        first or after the last row, extrapolated along the two rows at that end. PoseGapError otherwise."""
+        poses = self.ego_poses
+        times = poses.timestamps_us
+        n = len(times)
         if n == 0:
-            raise SchemaError(self.path, "table ego_pose has no row")
-        i = int(np.searchsorted(self._pose_times, timestamp_us, side="right"))
-        if i == 0 or i == n:
-            k = 0 if i == 0 else n - 1
-            return make_transform(quaternion_to_matrix(self._pose_q[k]), self._pose_xyz[k])
-        t0, t1 = self._pose_times[i - 1], self._pose_times[i]
-        alpha = float(timestamp_us - t0) / float(t1 - t0)
-        q = slerp(self._pose_q[i - 1], self._pose_q[i], alpha)
-        xyz = (1.0 - alpha) * self._pose_xyz[i - 1] + alpha * self._pose_xyz[i]
+            raise PoseGapError(self.path, "table ego_pose has no usable row")
+        i = int(np.searchsorted(times, timestamp_us, side="right"))
+        if 0 < i < n:
+            a, b = i - 1, i
+        else:
+            edge = 0 if i == 0 else n - 1
+            beyond = abs(int(timestamp_us) - int(times[edge]))
+            if beyond > POSE_EDGE_LIMIT_US:
+                side = "before the first" if i == 0 else "after the last"
+                raise PoseGapError(self.path, f"no pose at {timestamp_us} µs: {beyond / 1e3:.0f} ms {side} usable "
+                                              f"ego_pose row (limit {POSE_EDGE_LIMIT_US / 1e3:.0f} ms)")
+            if beyond == 0 or n == 1:
+                return poses.T_global_from_ego(edge)
+            a, b = (0, 1) if i == 0 else (n - 2, n - 1)
+        if times[b] - times[a] > POSE_GAP_LIMIT_US:
+            raise PoseGapError(self.path, f"no pose at {timestamp_us} µs: the usable ego_pose rows it lies between or "
+                                          f"next to are {(times[b] - times[a]) / 1e3:.0f} ms apart (limit "
+                                          f"{POSE_GAP_LIMIT_US / 1e3:.0f} ms)")
+        alpha = float(timestamp_us - times[a]) / float(times[b] - times[a])
+        q = slerp(poses.quaternions[a], poses.quaternions[b], alpha)
+        xyz = (1.0 - alpha) * poses.xyz[a] + alpha * poses.xyz[b]
         return make_transform(quaternion_to_matrix(q), xyz)
 
     def frame_pose(self, frame: LidarFrame) -> np.ndarray:
-        """T_global_from_ego (4, 4) at the frame's lidar_pc timestamp."""
-        return self.ego_pose_at(frame.timestamp_us)
+        """T_global_from_ego (4, 4) at the frame's lidar_pc timestamp (PoseGapError: see ego_pose_at)."""
+        try:
+            return self.ego_pose_at(frame.timestamp_us)
+        except PoseGapError as exc:
+            raise PoseGapError(self.path, f"lidar_pc {frame.token}: {exc.problem}") from None
 
-    def _has_box_index(self) -> bool:
-        for index in self._db.execute("PRAGMA index_list(lidar_box)").fetchall():
-            name = index["name"].replace('"', '""')
-            first = self._db.execute(f'PRAGMA index_info("{name}")').fetchone()
-            if first is not None and first["name"] == "lidar_pc_token":
-                return True
-        return False
+    def scene_boxes(self, frames: list[LidarFrame]) -> SceneBoxes:
+        """The boxes of `frames` (any frames of this log), in one query over the lidar_pc rows of their time span.
 
-    def _box_rows(self, frame: LidarFrame) -> list[sqlite3.Row]:
-        """lidar_box rows of a frame: per-frame query if lidar_pc_token is indexed, else one sorted bulk read."""
-        key = bytes.fromhex(frame.token)
-        if self._box_cache is None:
-            if self._has_box_index():
-                return self._select("lidar_box", _BOX_COLUMNS, "WHERE lidar_pc_token = ? ORDER BY token", (key,))
-            rows = self._select("lidar_box", _BOX_COLUMNS, "ORDER BY lidar_pc_token, token")
-            self._box_cache = {k: list(g) for k, g in groupby(rows, key=lambda r: r["lidar_pc_token"])}
-        return self._box_cache.get(key, [])
+        The statement selects lidar_box rows whose lidar_pc_token is in that span (a list subquery): one pass
+        over lidar_box without an index on lidar_pc_token, index lookups with one.
+        """
+        if not frames:
+            return SceneBoxes({}, {})
+        first = min(f.timestamp_us for f in frames)
+        last = max(f.timestamp_us for f in frames)
+        columns = ", ".join(self._column("lidar_box", c, numeric=True) for c in _BOX_VALUES)
+        rows = self._db.execute(
+            f"SELECT lidar_pc_token, token, track_token, {columns} FROM lidar_box WHERE lidar_pc_token IN "
+            "(SELECT token FROM lidar_pc WHERE lidar_token = ? AND timestamp BETWEEN ? AND ?) "
+            "ORDER BY lidar_pc_token, token",
+            (bytes.fromhex(self.lidar.token), first, last)).fetchall()
+        wanted = {bytes.fromhex(f.token) for f in frames}
+        rows = [r for r in rows if r[0] in wanted]
+        values = np.array([r[3:] for r in rows], dtype=np.float64).reshape(-1, len(_BOX_VALUES))
+        bad = self._bad_box_values(values)
+        tracks, track_problems = self._track_table
+        by_frame: dict[str, Boxes] = {}
+        problems: dict[str, SchemaError] = {}
+        start = 0
+        while start < len(rows):
+            end = start
+            while end + 1 < len(rows) and rows[end + 1][0] == rows[start][0]:
+                end += 1
+            frame_token = rows[start][0].hex()
+            try:
+                by_frame[frame_token] = self._frame_boxes(rows[start:end + 1], values[start:end + 1],
+                                                          bad[start:end + 1], tracks, track_problems)
+            except SchemaError as exc:
+                problems[frame_token] = SchemaError(self.path, f"lidar_pc {frame_token}: {exc.problem}")
+            start = end + 1
+        for frame in frames:
+            if frame.token not in by_frame and frame.token not in problems:
+                by_frame[frame.token] = Boxes.empty("global")
+        return SceneBoxes(by_frame, problems)
+
+    @staticmethod
+    def _bad_box_values(values: np.ndarray) -> np.ndarray:
+        """(K, 7) True where a centre, size or yaw value is NULL, non-finite or absurd."""
+        core = values[:, :7]
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(core)
+            bad[:, :2] |= np.abs(core[:, :2]) > MAX_GLOBAL_COORD_M
+            bad[:, 2] |= np.abs(core[:, 2]) > 1e4
+            bad[:, 3:6] |= (core[:, 3:6] <= 0) | (core[:, 3:6] > MAX_BOX_SIZE_M)
+        return bad
+
+    def _frame_boxes(self, rows: list, values: np.ndarray, bad: np.ndarray, tracks: dict[str, TrackRecord],
+                     track_problems: dict[str, str]) -> Boxes:
+        """One frame's rows as global Boxes; SchemaError naming the first bad row, its column or its track."""
+        tokens = [self._token(r[1], "lidar_box.token") for r in rows]
+        track_tokens = [self._hex(r[2], "lidar_box.track_token") for r in rows]
+        if bad.any():
+            k, column = np.argwhere(bad)[0]
+            value = values[k, column]
+            what = "NULL or not a number" if np.isnan(value) else f"{value:g}, out of range"
+            raise SchemaError(self.path, f"table lidar_box, token {tokens[k]}, column {_BOX_VALUES[column]}: {what}")
+        for token, track in zip(tokens, track_tokens):
+            if track in track_problems:
+                raise SchemaError(self.path, f"table lidar_box, token {token}: {track_problems[track]}")
+            if track not in tracks:
+                raise SchemaError(self.path, f"table lidar_box, token {token}, column track_token: names missing "
+                                             f"track {track}")
+        velocities = values[:, 7:10]
+        return Boxes(frame="global", centers=values[:, 0:3].copy(), sizes=values[:, 3:6].copy(),
+                     yaws=values[:, 6].copy(), velocities=np.where(np.isfinite(velocities), velocities, 0.0),
+                     categories=[tracks[t].category for t in track_tokens], track_tokens=track_tokens, tokens=tokens)
 
     def boxes(self, frame: LidarFrame, frame_name: str = "global") -> Boxes:
         """The frame's lidar_box rows as Boxes in "global" (as stored) or "ego" (at frame_pose(frame)).
 
-        sizes are [length, width, height] m; yaws rad; velocities m/s (NULL -> 0). SchemaError on a box
-        without a known track or with an unknown category.
+        sizes are [length, width, height] m; yaws rad; velocities m/s (NULL -> 0). SchemaError on a bad row of
+        this frame (see the module docstring). Reads BOX_WINDOW_US of boxes around the frame at once and keeps
+        them; a scene's worth at a time is `scene_boxes`.
         """
         if frame_name not in ("global", "ego"):
             raise ValueError(f"frame_name must be 'global' or 'ego', got {frame_name!r}")
-        rows = self._box_rows(frame)
-        tracks = self.tracks
-        track_tokens = [self._hex(r["track_token"], "lidar_box.track_token") for r in rows]
-        for r, track in zip(rows, track_tokens):
-            if track not in tracks:
-                raise SchemaError(self.path, f"lidar_box {self._hex(r['token'], 'lidar_box.token')} refers to "
-                                             f"missing track {track}")
-        values = np.array([[float(r[c]) if r[c] is not None else np.nan for c in _BOX_COLUMNS[3:]] for r in rows],
-                          dtype=np.float64).reshape(-1, len(_BOX_COLUMNS) - 3)
-        if np.isnan(values[:, :7]).any():
-            raise SchemaError(self.path, f"lidar_box rows of frame {frame.token} have NULL position, size or yaw")
-        boxes = Boxes(
-            frame="global", centers=values[:, 0:3], sizes=values[:, 3:6], yaws=values[:, 6],
-            velocities=np.nan_to_num(values[:, 7:10]), categories=[tracks[t].category for t in track_tokens],
-            track_tokens=track_tokens, tokens=[self._token(r["token"], "lidar_box.token") for r in rows],
-        )
+        if self._window is None or not self._window.covers(frame):
+            half = BOX_WINDOW_US // 2
+            self._window = self.scene_boxes([f for f in self.frames
+                                             if abs(f.timestamp_us - frame.timestamp_us) <= half] or [frame])
+        boxes = self._window.of(frame)
         if frame_name == "ego":
             return boxes.transformed(invert_transform(self.frame_pose(frame)), "ego")
         return boxes
 
     def box_counts(self) -> dict[str, int]:
-        """Number of lidar_box rows per category over the frames of the MergedPointCloud lidar."""
+        """Number of lidar_box rows per category over the frames of the MergedPointCloud lidar. SchemaError if
+        a counted box names a missing track or one of unknown category."""
         rows = self._db.execute(
             "SELECT lb.track_token AS track, COUNT(*) AS n FROM lidar_box lb JOIN lidar_pc lp "
             "ON lp.token = lb.lidar_pc_token WHERE lp.lidar_token = ? GROUP BY lb.track_token",
             (bytes.fromhex(self.lidar.token),),
         ).fetchall()
         counts = dict.fromkeys(NUPLAN_CATEGORIES, 0)
-        tracks = self.tracks
+        tracks, track_problems = self._track_table
         for r in rows:
             track = self._hex(r["track"], "lidar_box.track_token")
+            if track in track_problems:
+                raise SchemaError(self.path, track_problems[track])
             if track not in tracks:
                 raise SchemaError(self.path, f"lidar_box rows refer to missing track {track}")
             counts[tracks[track].category] += int(r["n"])
         return counts
 
     def blob_path(self, frame: LidarFrame) -> Path:
-        """Where the frame's PCD should be: sensor_root / lidar_pc.filename."""
+        """Where the frame's PCD should be: sensor_root / lidar_pc.filename. OutsideDataRootError (naming the DB,
+        not the file) when the filename is absolute or climbs out with '..'."""
+        if leaves_folder(frame.filename):
+            raise OutsideDataRootError(self.path, f"lidar_pc {frame.token}: its filename leaves the sensor_blobs "
+                                                  "folder (absolute or '..' path); not opened")
         return self.sensor_root / frame.filename
 
-    def load_points(self, frame: LidarFrame) -> PointCloud:
-        """The frame's merged cloud in the "lidar" frame. MissingBlobError names the missing sensor_blobs
-        folder, log folder or file; PointCloudError names a corrupt or unreadable file."""
+    def load_sweep(self, frame: LidarFrame) -> tuple[PointCloud, DroppedPoints]:
+        """The frame's usable points in the "lidar" frame (`nuplan_occ.io.pcd.usable_points`) and what was
+        dropped. MissingBlobError names the missing sensor_blobs folder, log folder or file; PointCloudError a
+        corrupt, oversized, empty or degenerate file; OutsideDataRootError a filename leaving sensor_blobs;
+        a frame with a `problem` raises SchemaError with it."""
         path = self.blob_path(frame)
+        if frame.problem:
+            raise SchemaError(self.path, frame.problem)
         if not path.is_file():
             log_dir = self.sensor_root / Path(frame.filename).parts[0]
             if not self.sensor_root.is_dir():
@@ -409,10 +596,18 @@ class NuplanLog:
                 raise MissingBlobError(log_dir, "sensor_blobs folder of this log is missing")
             raise MissingBlobError(path, f"point cloud blob of lidar_pc {frame.token} is missing")
         try:
+            size = path.stat().st_size
+            if size > 64 * 1024 + 64 * MAX_POINTS:
+                raise PointCloudError(path, f"point cloud blob of {size} bytes is larger than any sweep "
+                                            f"of at most {MAX_POINTS} points")
             buf = path.read_bytes()
         except OSError as exc:
-            raise PointCloudError(path, f"cannot read point cloud blob ({exc})") from None
-        return read_pcd(buf, str(path))
+            raise PointCloudError(path, f"cannot read point cloud blob ({exc.strerror or exc})") from None
+        return usable_points(read_pcd(buf, str(path)), str(path))
+
+    def load_points(self, frame: LidarFrame) -> PointCloud:
+        """The frame's usable points in the "lidar" frame; errors as load_sweep."""
+        return self.load_sweep(frame)[0]
 
 
 def points_to_ego(cloud: PointCloud, log: NuplanLog) -> PointCloud:

@@ -14,7 +14,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from nuplan_occ.geometry import invert_transform, make_transform, rotate_vectors, transform_points, wrap_angle, yaw_matrix, yaw_of
+from nuplan_occ.geometry import (
+    invert_transform, make_transform, quaternion_to_matrix, rotate_vectors, transform_points, wrap_angle, yaw_matrix,
+    yaw_of,
+)
 
 NUPLAN_CATEGORIES: tuple[str, ...] = (
     "vehicle", "pedestrian", "bicycle", "traffic_cone", "barrier", "czone_sign", "generic_object",
@@ -183,6 +186,35 @@ class EgoPoseRecord:
 
 
 @dataclass
+class EgoPoseTable:
+    """The usable `ego_pose` rows of a log as columns, in time order (one row per timestamp).
+
+    tokens (N,) bytes (the DB's BLOB tokens, numpy 'S' dtype); timestamps_us (N,) int64, strictly increasing;
+    xyz (N, 3) rear-axle position in the "global" frame, m; quaternions (N, 4) unit [w, x, y, z] of
+    T_global_from_ego's rotation.
+    """
+
+    tokens: np.ndarray
+    timestamps_us: np.ndarray
+    xyz: np.ndarray
+    quaternions: np.ndarray
+
+    def __len__(self) -> int:
+        return int(len(self.timestamps_us))
+
+    def T_global_from_ego(self, k: int) -> np.ndarray:
+        """(4, 4) pose of row k."""
+        return make_transform(quaternion_to_matrix(self.quaternions[k]), self.xyz[k])
+
+    def index_of(self, token: str) -> int:
+        """Row of an ego_pose token (hex); KeyError if it is not a usable row."""
+        hits = np.flatnonzero(self.tokens == bytes.fromhex(token))
+        if not len(hits):
+            raise KeyError(token)
+        return int(hits[0])
+
+
+@dataclass
 class SceneRecord:
     """A `scene` row. roadblock_ids are map fids (strings)."""
 
@@ -203,10 +235,11 @@ class TrackRecord:
     height: float
 
 
-@dataclass
+@dataclass(slots=True)
 class LidarFrame:
     """A `lidar_pc` row (one 20 Hz merged sweep). filename is relative to sensor_blobs/.
-    index: position of the frame in the log's time order (0-based)."""
+    index: position of the frame in the log's time order (0-based). problem: why the frame cannot be used
+    (one line, set by the reader: e.g. a repeated timestamp or a filename leaving sensor_blobs), "" if none."""
 
     token: str
     timestamp_us: int
@@ -217,6 +250,7 @@ class LidarFrame:
     prev_token: str | None = None
     next_token: str | None = None
     index: int = 0
+    problem: str = ""
 
 
 @dataclass
@@ -230,6 +264,20 @@ class ImageRecord:
     ego_pose_token: str
     prev_token: str | None = None
     next_token: str | None = None
+
+
+@dataclass
+class ImageTable:
+    """The `image` rows of a log as columns, time order: tokens, camera_tokens (N,) bytes ('S' dtype),
+    timestamps_us (N,) int64, filenames (N,) bytes (relative to sensor_blobs/)."""
+
+    tokens: np.ndarray
+    timestamps_us: np.ndarray
+    camera_tokens: np.ndarray
+    filenames: np.ndarray
+
+    def __len__(self) -> int:
+        return int(len(self.timestamps_us))
 
 
 @dataclass

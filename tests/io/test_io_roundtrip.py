@@ -10,7 +10,8 @@ import pytest
 
 from nuplan_io_logfactory import POSE_PERIOD_US, T_EGO_FROM_LIDAR, build_log, true_pose, write_built
 from nuplan_occ.geometry import invert_transform, transform_points, yaw_matrix
-from nuplan_occ.io.reader import NuplanLog, points_to_ego, points_to_global, slerp
+from nuplan_occ.io.errors import PoseGapError
+from nuplan_occ.io.reader import POSE_EDGE_LIMIT_US, NuplanLog, points_to_ego, points_to_global, slerp
 from nuplan_occ.io.types import NUPLAN_CATEGORIES
 
 
@@ -51,9 +52,13 @@ def test_layout_and_records_round_trip(built, db_path):
         assert sum(len(log.frames_of_scene(s.token)) for s in log.scenes) == len(log.frames)
         assert {t.token: t.category for t in content.tracks} == {k: v.category for k, v in log.tracks.items()}
         assert len(log.ego_poses) == len(content.ego_poses)
-        for got, want in zip(log.ego_poses, content.ego_poses):
-            np.testing.assert_allclose(got.T_global_from_ego, want.T_global_from_ego, atol=1e-9)
-        assert len(log.images) == len(content.images) and log.images[0].next_token == log.images[1].token
+        for k, want in enumerate(content.ego_poses):
+            np.testing.assert_allclose(log.ego_poses.T_global_from_ego(k), want.T_global_from_ego, atol=1e-9)
+            assert log.ego_poses.tokens[k].hex() == want.token and log.ego_poses.timestamps_us[k] == want.timestamp_us
+        images = sorted(content.images, key=lambda i: (i.timestamp_us, i.token))
+        assert [t.hex() for t in log.images.tokens] == [i.token for i in images]
+        assert log.images.timestamps_us.tolist() == [i.timestamp_us for i in images]
+        assert [f.decode() for f in log.images.filenames] == [i.filename_jpg for i in images]
 
 
 def test_boxes_and_points_round_trip(built, db_path):
@@ -100,20 +105,25 @@ def test_frame_chain_points_land_in_their_boxes(built, db_path):
 def test_ego_pose_at_interpolates_between_rows_at_a_different_rate(db_path):
     with NuplanLog(db_path) as log:
         rows = log.ego_poses
+        times = rows.timestamps_us
         for frame in log.frames:
-            linked = next(p for p in rows if p.token == frame.ego_pose_token)
-            assert linked.timestamp_us != frame.timestamp_us  # the link is not at frame time
+            linked = rows.index_of(frame.ego_pose_token)
+            assert times[linked] != frame.timestamp_us  # the link is not at frame time
             pose = log.frame_pose(frame)
             truth = true_pose(frame.timestamp_us)
             np.testing.assert_allclose(pose[:3, 3], truth[:3, 3], atol=1e-3)
             np.testing.assert_allclose(pose[:3, :3], truth[:3, :3], atol=1e-9)
-            assert np.linalg.norm(linked.T_global_from_ego[:3, 3] - truth[:3, 3]) > 0.02
-        a, b = rows[5], rows[6]
-        mid = log.ego_pose_at((a.timestamp_us + b.timestamp_us) // 2)
-        np.testing.assert_allclose(mid[:3, 3], (a.T_global_from_ego[:3, 3] + b.T_global_from_ego[:3, 3]) / 2)
-        np.testing.assert_allclose(log.ego_pose_at(rows[0].timestamp_us - 10 * POSE_PERIOD_US), rows[0].T_global_from_ego,
-                                   atol=1e-12)
-        np.testing.assert_allclose(log.ego_pose_at(rows[-1].timestamp_us + 10**9), rows[-1].T_global_from_ego, atol=1e-12)
+            assert np.linalg.norm(rows.xyz[linked] - truth[:3, 3]) > 0.02
+        mid = log.ego_pose_at((times[5] + times[6]) // 2)
+        np.testing.assert_allclose(mid[:3, 3], (rows.xyz[5] + rows.xyz[6]) / 2)
+        # up to POSE_EDGE_LIMIT_US beyond the table, the two end rows are extrapolated; farther, no pose at all
+        step = rows.xyz[-1] - rows.xyz[-2]
+        np.testing.assert_allclose(log.ego_pose_at(times[-1] + POSE_PERIOD_US)[:3, 3], rows.xyz[-1] + step, atol=1e-9)
+        np.testing.assert_allclose(log.ego_pose_at(times[0])[:3, 3], rows.xyz[0], atol=1e-12)
+        with pytest.raises(PoseGapError, match="before the first usable ego_pose row"):
+            log.ego_pose_at(times[0] - POSE_EDGE_LIMIT_US - 1)
+        with pytest.raises(PoseGapError, match="after the last"):
+            log.ego_pose_at(times[-1] + 10**9)
 
 
 def test_slerp_halves_the_rotation_angle():
