@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
-from nuplan_occ.storage.codecs import MEMBERS
-from nuplan_occ.storage.manifest import base_schema
+from nuplan_occ.storage.manifest import STORED_MEMBERS, base_schema
 
 SCENES_PER_LOG = 4
 
@@ -73,9 +72,10 @@ def simulated_manifest(n_scenes: int, frames_per_scene: int = 190, hist_len: int
         "commit_id": _strings(np.char.add(_formatted("%019d", 1_796_000_000_000_000_000 + np.arange(n_scenes)),
                                           _formatted("-%016x", np.arange(n_scenes)))[scene]),
     }
-    sizes = {"semantics": 36_000, "mask_lidar": 20_000, "mask_camera": 20_000, "instance": 4_000, "flow": 8_000}
+    sizes = {"semantics": 36_000, "mask_lidar": 20_000, "mask_camera": 20_000, "instance": 4_000, "flow": 8_000,
+             "json": 400}
     offset = np.zeros(n, dtype=np.int64)
-    for name in MEMBERS:
+    for name in STORED_MEMBERS:
         nbytes = np.where(ok, sizes[name] + rng.integers(0, 1000, n), 0)
         columns[f"{name}_offset"] = pa.array(offset + 512, mask=~ok)
         columns[f"{name}_nbytes"] = pa.array(nbytes, mask=~ok)

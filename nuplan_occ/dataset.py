@@ -5,6 +5,9 @@ indexed [x, y, z] in the ego frame (nuPlan rear axle at `timestamp_us`, see `nup
 `ego_to_global` is T_global_from_ego (4, 4) float64; `flow` is m/s in the ego frame. Only the members
 a frame has are returned; asking for another raises `MissingMemberError`. Identity fields the source
 did not give (an imported release without its logs) are None, and `ego_to_global` is all NaN.
+An unreadable manifest file is skipped with a warning and listed in `OccDataset.damaged` (its shard's
+frames fall back to the shard's previous commit, or are missing: `manifest_reader.DamagedFile`);
+`strict=True` refuses to open such a dataset instead.
 """
 
 from __future__ import annotations
@@ -34,19 +37,21 @@ class OccDataset:
     commits and ordering need: `manifest_reader.ManifestIndex`); a frame's other columns are read when
     it is asked for. Attributes: `metadata` (dataset.json), `grid` (GridSpec), `labels` (id ->
     {"name", "color"}), `scene_codes` (int per frame, equal within a scene), `frame_index` (int64 per
-    frame, -1 where unknown). `column(name)` / `columns(names)` read manifest columns of every ok
-    frame; `manifest` is the whole table of ok frames (read on first use).
-    Keeps shard handles open per process.
+    frame, -1 where unknown), `damaged` (the manifest files skipped as unreadable, `DamagedFile` each:
+    empty for an intact dataset; strict=True raises DatasetFormatError instead). `column(name)` /
+    `columns(names)` read manifest columns of every ok frame; `manifest` is the whole table of ok frames
+    (read on first use). Keeps shard handles open per process.
     """
 
-    def __init__(self, root: str):
+    def __init__(self, root: str, *, strict: bool = False):
         self.root = root
         self.metadata = read_metadata(root)
         self.grid = GridSpec.from_dict(self.metadata["grid"])
         self.labels = {
             int(c["id"]): {"name": c["name"], "color": tuple(c["color"])} for c in self.metadata["labels"]["classes"]
         }
-        self._index = ManifestIndex(root)
+        self._index = ManifestIndex(root, strict=strict)
+        self.damaged = self._index.damaged
         self._positions = np.flatnonzero(self._index.ok)
         self.scene_codes = self._index.scene_codes[self._positions]
         self.frame_index = self._index.frame_index[self._positions]
@@ -168,6 +173,7 @@ def _identity(row: dict) -> dict:
     }
 
 
-def open_dataset(path_or_url: str) -> OccDataset:
-    """Open a published dataset root (local path, file://, memory://, s3:// ...)."""
-    return OccDataset(path_or_url)
+def open_dataset(path_or_url: str, *, strict: bool = False) -> OccDataset:
+    """Open a published dataset root (local path, file://, memory://, s3:// ...); strict: refuse a
+    dataset with an unreadable manifest file (DatasetFormatError) instead of skipping it."""
+    return OccDataset(path_or_url, strict=strict)

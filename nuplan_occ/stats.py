@@ -6,19 +6,22 @@
 - bytes: stored (compressed) bytes per frame of each member (`<member>_nbytes`), over the frames that
   have the member: frames, mean, median, max, total;
 - qa: every `qa_*` column over the ok frames: numeric -> n, median, min, max; bool -> n, fraction
-  true; string -> value counts. Nulls (e.g. NaN coverage of an empty sweep) are counted apart.
+  true; string -> value counts. Nulls (e.g. NaN coverage of an empty sweep) are counted apart;
+- damaged: the manifest files skipped as unreadable (`manifest_reader.DamagedFile`): the figures above
+  cover the readable rows only, and each entry says whether its shard's frames are missing.
 """
 
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import asdict
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from nuplan_occ.storage.codecs import MEMBERS
-from nuplan_occ.storage.manifest_reader import read_manifest
+from nuplan_occ.storage.manifest_reader import ManifestIndex
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.records import STATUS_FAILED, STATUS_OK
 
@@ -72,15 +75,18 @@ def _qa_summary(ok: pa.Table) -> dict[str, dict]:
     return out
 
 
-def dataset_stats(root: str) -> dict:
-    """The summary of the dataset at `root` (see module docstring).
+def dataset_stats(root: str, *, strict: bool = False) -> dict:
+    """The summary of the dataset at `root` (see module docstring); strict: raise DatasetFormatError on
+    an unreadable manifest file instead of skipping it.
 
     Returns {"root", "frames": {"total", "ok", "failed", "logs", "scenes"}, "failure_reasons": {reason:
     count}, "classes": [{"id", "name", "voxels", "fraction", "fraction_of_occupied"}], "bytes": {member:
-    {...}}, "bytes_per_frame": mean stored bytes of an ok frame (all members), "qa": {column: {...}}}.
+    {...}}, "bytes_per_frame": mean stored bytes of an ok frame (all members), "qa": {column: {...}},
+    "damaged": [{"path", "problem", "shard_folder", "commit_id", "outcome", "fallback_commit", "line"}]}.
     """
     metadata = read_metadata(root)
-    table = read_manifest(root)
+    index = ManifestIndex(root, strict=strict)
+    table = index.table()
     ok = table.filter(pc.equal(table["status"], STATUS_OK))
     failed = table.filter(pc.equal(table["status"], STATUS_FAILED))
     member_bytes = _member_bytes(ok)
@@ -94,4 +100,5 @@ def dataset_stats(root: str) -> dict:
         "bytes": member_bytes,
         "bytes_per_frame": (sum(m["total"] for m in member_bytes.values()) / ok.num_rows) if ok.num_rows else 0.0,
         "qa": _qa_summary(ok),
+        "damaged": [asdict(d) | {"line": d.describe()} for d in index.damaged],
     }

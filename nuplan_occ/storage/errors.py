@@ -30,3 +30,22 @@ class MissingMemberError(StorageError, KeyError):
 
     def __str__(self) -> str:  # KeyError would repr() the message
         return str(self.args[0])
+
+
+class StorageWriteError(StorageError, OSError):
+    """Writing or publishing a file failed (disk full, quota, read-only folder): errno and strerror of the
+    OS error, `filename` the path that was being published. The temp file is removed; what was published
+    before stays as it was."""
+
+    @classmethod
+    def of(cls, exc: OSError, path: str) -> "StorageWriteError":
+        """The error for `exc` raised while publishing `path`."""
+        return cls(exc.errno, exc.strerror or str(exc), path)
+
+    def __str__(self) -> str:
+        reason = (self.strerror or "write failed").lower()
+        return f"{self.filename}: {reason} (not written; what was published before is kept)"
+
+
+class DamagedManifestWarning(UserWarning):
+    """A manifest file cannot be read and is skipped (see `manifest_reader.DamagedFile`)."""

@@ -96,12 +96,16 @@ def content_digest(table: pa.Table) -> str:
 
 
 def _newest_digest(fs: fsspec.AbstractFileSystem, folder: str) -> str | None:
-    """Content digest stored in the newest fragment of a shard folder (None without one)."""
+    """Content digest stored in the newest fragment of a shard folder (None without one, or when that
+    fragment cannot be read)."""
     ids = _commit_ids_in(fs, folder)
     if not ids:
         return None
-    with fs.open(f"{folder}/{ids[-1]}.parquet", "rb") as handle:
-        meta = pq.read_schema(handle).metadata or {}
+    try:
+        with fs.open(f"{folder}/{ids[-1]}.parquet", "rb") as handle:
+            meta = pq.read_schema(handle).metadata or {}
+    except (pa.ArrowInvalid, OSError):  # unreadable (readers skip it): publish the rows again
+        return None
     value = meta.get(CONTENT_KEY)
     return value.decode() if value else None
 

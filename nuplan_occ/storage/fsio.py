@@ -7,12 +7,15 @@ directory (`.<name>.tmp-<pid>-<rand>`), fsynced, then renamed over the final nam
 
 from __future__ import annotations
 
+import contextlib
 import os
 import uuid
 
 import fsspec
 import pyarrow.fs as pafs
 from fsspec.implementations.local import LocalFileSystem
+
+from nuplan_occ.storage.errors import StorageWriteError
 
 TEMP_MARKER = ".tmp-"
 
@@ -34,18 +37,29 @@ def arrow_filesystem(fs: fsspec.AbstractFileSystem) -> pafs.FileSystem:
 
 
 def atomic_put(fs: fsspec.AbstractFileSystem, path: str, data: bytes) -> None:
-    """Publish `data` at `path` so that readers see either the old object or the whole new one."""
+    """Publish `data` at `path` so that readers see either the old object or the whole new one.
+    An OSError (disk full, quota, permissions) is raised as StorageWriteError naming `path`, after the
+    local temp file is removed."""
     parent, name = path.rsplit("/", 1)
-    if is_local(fs):
-        tmp = f"{parent}/.{name}{TEMP_MARKER}{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        with _create(tmp) as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    else:
-        fs.pipe_file(path, data)
-
+    try:
+        if is_local(fs):
+            tmp = f"{parent}/.{name}{TEMP_MARKER}{os.getpid()}-{uuid.uuid4().hex[:8]}"
+            try:
+                with _create(tmp) as f:
+                    f.write(data)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.replace(tmp, path)
+            except BaseException:
+                with contextlib.suppress(OSError):
+                    os.remove(tmp)
+                raise
+        else:
+            fs.pipe_file(path, data)
+    except StorageWriteError:
+        raise
+    except OSError as exc:
+        raise StorageWriteError.of(exc, path) from exc
 
 
 def _create(path: str, attempts: int = 3):

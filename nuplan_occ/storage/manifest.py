@@ -2,8 +2,9 @@
 commits: `fragments.py`; reading: `manifest_reader.py`).
 
 Column order is fixed: the base columns below, then `<member>_offset`, `<member>_nbytes`,
-`<member>_crc32` for every member of `MEMBERS` (null when the frame lacks the member), then the
-extra columns of the records (`FrameRecord.columns`) sorted by name. Rows are sorted by
+`<member>_crc32` for every member of `MEMBERS` (null when the frame lacks the member) and for the
+frame's json member (`FRAME_JSON`), then the extra columns of the records (`FrameRecord.columns`)
+sorted by name. Rows are sorted by
 (log_id, timestamp_us, frame_index, token) and unique in (log, token). Offsets are byte offsets of a
 member's data inside `<root>/shards/<shard>.tar`; crc32 is `zlib.crc32` of the stored (compressed)
 bytes. `class_hist[i]` counts the voxels of label id i (length = largest label id + 1).
@@ -26,6 +27,15 @@ ROW_GROUP_SIZE = 131072
 SORT_KEYS = ("log_id", "timestamp_us", "frame_index", "token")
 
 MEMBER_FIELDS = ("offset", "nbytes", "crc32")
+FRAME_JSON = "json"
+"""The `<key>.json` member of every ok frame: its identity, member suffixes and extra columns, for
+WebDataset readers. Its columns `json_offset`, `json_nbytes`, `json_crc32` are written since they were
+added; manifests written before lack them (null where read), and `validate` then checks the member's
+content against the frame's row instead of a checksum."""
+STORED_MEMBERS = (*MEMBERS, FRAME_JSON)
+"""Every tar member a frame may have, in column order: the array members, then the json."""
+OPTIONAL_COLUMNS = frozenset(f"{FRAME_JSON}_{field}" for field in MEMBER_FIELDS)
+"""Base columns that manifests written before them lack."""
 
 
 def base_schema(hist_len: int) -> pa.Schema:
@@ -46,7 +56,7 @@ def base_schema(hist_len: int) -> pa.Schema:
         ("class_hist", pa.list_(pa.int64(), hist_len)),
         ("commit_id", pa.string()),
     ]
-    for member in MEMBERS:
+    for member in STORED_MEMBERS:
         fields += [
             (f"{member}_offset", pa.int64()),
             (f"{member}_nbytes", pa.int64()),

@@ -7,10 +7,20 @@ together: shard, scene_token, commit_id and status read dictionary-encoded and k
 log_id, timestamp_us and frame_index as int64; tokens are read only where those three keys tie. Other columns are read whole (`column`, `table`) or for chosen rows only (`take`: the
 Parquet row groups holding them, a few kept in memory). A file folded away by a concurrent `compact`
 between listing and reading makes opening retry with a fresh listing.
+
+A damaged file (truncated, empty, not Parquet: its footer or index columns cannot be read) is skipped
+and described in `ManifestIndex.damaged` (a `DamagedFile` each, also issued as a
+`DamagedManifestWarning`): the rows of its shard resolve among the readable files, so they fall back to
+the shard's previous commit where one is readable, else they are missing from the read result and the
+`DamagedFile` says so. `strict=True` raises DatasetFormatError at the first damaged file instead.
+Damage inside a column that opening does not read surfaces when that column is read, as a
+DatasetFormatError naming the file.
 """
 
 from __future__ import annotations
 
+import itertools
+import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -25,8 +35,10 @@ import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
 from nuplan_occ.storage import keyorder
-from nuplan_occ.storage.errors import DatasetFormatError
-from nuplan_occ.storage.fragments import COMMIT_COLUMN, manifest_files, ranks_of_codes, visible_rows
+from nuplan_occ.storage.errors import DamagedManifestWarning, DatasetFormatError
+from nuplan_occ.storage.fragments import (
+    COMMIT_COLUMN, SHARDS_DIR, manifest_files, ranks_of_codes, shard_dir, visible_rows,
+)
 from nuplan_occ.storage.fsio import arrow_filesystem, is_local, resolve
 from nuplan_occ.storage.manifest import SORT_KEYS, base_schema
 from nuplan_occ.storage.records import STATUS_OK
@@ -133,6 +145,38 @@ def _codes(column: pa.ChunkedArray) -> tuple[np.ndarray, pa.Array]:
     return indices.to_numpy().astype(np.int32, copy=False), array.dictionary
 
 
+SUPERSEDED, FALLBACK, UNREADABLE = "superseded", "fallback", "unreadable"
+
+
+@dataclass(frozen=True)
+class DamagedFile:
+    """A manifest file that cannot be read and is skipped. `shard_folder`: the shard folder it was
+    published in (relative to manifest/shards; None for a compacted, scene or legacy file, which may hold
+    any shard); `commit_id`: from its name (None for the legacy manifest.parquet). `outcome`:
+    "superseded" (a newer commit of its shard is readable: nothing is missing), "fallback" (its shard's
+    rows are those of the earlier commit `fallback_commit`) or "unreadable" (no readable commit of its
+    shard(s): their frames are missing from the read result until they are rebuilt)."""
+
+    path: str
+    problem: str
+    shard_folder: str | None
+    commit_id: str | None
+    outcome: str
+    fallback_commit: str | None = None
+
+    def describe(self) -> str:
+        """One line naming the file, the problem and what readers see instead."""
+        if self.outcome == SUPERSEDED:
+            then = "a newer commit of its shard is read (nothing missing)"
+        elif self.outcome == FALLBACK:
+            then = f"its shard's rows are those of the earlier commit {self.fallback_commit} (rebuild to republish)"
+        elif self.shard_folder is not None:
+            then = "no earlier commit of its shard: the shard's frames are unreadable until it is rebuilt"
+        else:
+            then = "the frames it holds are unreadable unless a newer commit of their shard is readable"
+        return f"{self.path}: unreadable manifest file skipped ({self.problem}); {then}"
+
+
 class ManifestIndex:
     """The visible manifest rows of a dataset root, in manifest order; see the module docstring.
 
@@ -142,11 +186,13 @@ class ManifestIndex:
     frames of unknown scenes. `ok`: bool per visible row, status is "ok"; `frame_index`: int64 per
     visible row, -1 where unknown. `schema`: the union of the files' columns (a column a file lacks
     reads as null there). `paths`, `file_row_counts`: the manifest files read and their row counts
-    (superseded rows included).
+    (superseded rows included). `damaged`: the files skipped as unreadable (`DamagedFile`, see the module
+    docstring); strict: raise DatasetFormatError at the first one instead.
     """
 
-    def __init__(self, root: str):
+    def __init__(self, root: str, *, strict: bool = False):
         self.root = root
+        self.strict = strict
         self._fs, self._path = resolve(root)
         self._cache: OrderedDict[tuple, pa.Table] = OrderedDict()
         self._footers: OrderedDict[int, pq.FileMetaData] = OrderedDict()
@@ -158,6 +204,8 @@ class ManifestIndex:
                 if attempt == OPEN_ATTEMPTS - 1:
                     raise DatasetFormatError(f"{root}: manifest files keep vanishing while opening "
                                              "(a compaction running?); retry") from None
+        for damaged in self.damaged:
+            warnings.warn(damaged.describe(), DamagedManifestWarning, stacklevel=2)
 
     def _open(self) -> None:
         paths = manifest_files(self._fs, self._path)
@@ -165,8 +213,10 @@ class ManifestIndex:
             raise DatasetFormatError(f"{self.root}: no manifest (nothing committed?)")
         self._filesystem = arrow_filesystem(self._fs)
         self.paths = paths
-        index = self._scan()
+        index, problems = self._scan()
         codes = {c: _codes(index[c]) for c in CODED_COLUMNS}
+        self.damaged = [self._damaged(path, problem, codes["shard"], codes[COMMIT_COLUMN])
+                        for path, problem in problems]
         keys = {c: _key_values(index[c]) for c in KEY_COLUMNS}
         del index
         keep = _visible(codes["shard"], codes[COMMIT_COLUMN], self.file_row_counts)
@@ -188,20 +238,37 @@ class ManifestIndex:
         ok_code = status_values.index(STATUS_OK).as_py()
         self.ok = visible(status) == ok_code if ok_code >= 0 else np.zeros(len(self.rows), dtype=bool)
 
-    def _scan(self) -> pa.Table:
-        """The index columns of every file (`_INDEX_SCHEMA`), in file order; sets the schemas, row
-        counts and row groups of the files."""
+    def _scan(self) -> tuple[pa.Table, list[tuple[str, str]]]:
+        """The index columns of every readable file (`_INDEX_SCHEMA`), in file order, and (path, problem)
+        of each damaged one; keeps only the readable files in `paths` and sets their schemas, row counts
+        and row groups. Raises at the first damaged file when strict."""
         schemas: dict[pa.Schema, int] = {}  # distinct file schemas -> their number
         schema_of_file, self._group_starts = [], []
+        readable, damaged = [], []
+
+        def open_file(i: int, threads: bool) -> _FileIndex | DatasetFormatError:
+            try:
+                return _open_file(self.paths[i], self._filesystem, threads)
+            except DatasetFormatError as exc:
+                if self.strict:
+                    raise
+                return exc
 
         def columns() -> Iterator[pa.Table]:
-            for part in _each_file(lambda i, threads: _open_file(self.paths[i], self._filesystem, threads),
-                                   len(self.paths), self._fs):
+            for path, part in zip(self.paths, _each_file(open_file, len(self.paths), self._fs)):
+                if isinstance(part, DatasetFormatError):
+                    damaged.append((path, str(part).removeprefix(f"{path}: ")))
+                    continue
+                readable.append(path)
                 schema_of_file.append(schemas.setdefault(part.schema, len(schemas)))
                 self._group_starts.append(np.concatenate([[0], np.cumsum(part.row_groups)]))
                 yield part.columns
 
-        index = _concatenated(columns())
+        index = _concatenated(itertools.chain(columns(), [_INDEX_SCHEMA.empty_table()]))
+        if not readable:
+            raise DatasetFormatError(f"{damaged[0][0]}: {damaged[0][1]}; no manifest file of {self.root} "
+                                     "is readable")
+        self.paths = readable
         self._schema_of_file = np.array(schema_of_file, dtype=np.int64)
         self.file_row_counts = np.array([int(g[-1]) for g in self._group_starts], dtype=np.int64)
         self._file_start = np.concatenate([[0], np.cumsum(self.file_row_counts)])
@@ -214,7 +281,26 @@ class ManifestIndex:
             schema = schema.append(pa.field(COMMIT_COLUMN, pa.string()))
         self.schema = _column_order(schema)
         self._file_columns = [set(s.names) for s in distinct]
-        return index
+        return index, damaged
+
+    def _damaged(self, path: str, problem: str, shards: tuple[np.ndarray, pa.Array],
+                 commits: tuple[np.ndarray, pa.Array]) -> DamagedFile:
+        """What a damaged file means for its shard, from the readable rows' shard and commit codes."""
+        folder, name = path.rsplit("/", 1)
+        commit = name.removesuffix(".parquet") if path.startswith(f"{self._path}/manifest/") else None
+        shards_top = f"{self._path}/{SHARDS_DIR}/"
+        if not folder.startswith(shards_top):
+            return DamagedFile(path, problem, None, commit, UNREADABLE)
+        shard_codes, shard_values = shards
+        same_folder = [k for k, v in enumerate(shard_values.to_pylist()) if shard_dir(self._path, v) == folder]
+        commit_codes, commit_values = commits
+        found = np.unique(commit_codes[np.isin(shard_codes, same_folder)])
+        readable = sorted(commit_values.take(pa.array(found[found >= 0])).to_pylist())
+        newer = [c for c in readable if c > commit]
+        older = [c for c in readable if c < commit]
+        outcome = SUPERSEDED if newer else FALLBACK if older else UNREADABLE
+        return DamagedFile(path, problem, folder.removeprefix(shards_top), commit, outcome,
+                           older[-1] if outcome == FALLBACK else None)
 
     def _read(self, columns: list[str]) -> pa.Table:
         """`columns` of every file, in file order; a column a file lacks reads as null."""
@@ -338,6 +424,7 @@ def _scene_codes(codes: np.ndarray) -> np.ndarray:
     return result
 
 
-def read_manifest(root: str, columns: list[str] | None = None) -> pa.Table:
-    """The visible manifest rows of a dataset root (failed ones included), in manifest order."""
-    return ManifestIndex(root).table(columns)
+def read_manifest(root: str, columns: list[str] | None = None, *, strict: bool = False) -> pa.Table:
+    """The visible manifest rows of a dataset root (failed ones included), in manifest order; damaged
+    manifest files are skipped with a DamagedManifestWarning each (strict: raise; see module docstring)."""
+    return ManifestIndex(root, strict=strict).table(columns)

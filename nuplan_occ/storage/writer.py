@@ -28,7 +28,9 @@ from nuplan_occ.storage.codecs import MEMBERS
 from nuplan_occ.storage.errors import DatasetFormatError, InvalidFrameError
 from nuplan_occ.storage.fsio import atomic_put, resolve
 from nuplan_occ.storage.fragments import publish_fragments
-from nuplan_occ.storage.manifest import MEMBER_FIELDS, RESERVED_COLUMNS, check_unique, ordered, rows_to_table
+from nuplan_occ.storage.manifest import (
+    FRAME_JSON, MEMBER_FIELDS, RESERVED_COLUMNS, STORED_MEMBERS, check_unique, ordered, rows_to_table,
+)
 from nuplan_occ.storage.metadata import METADATA_NAME, build_metadata, label_ids, metadata_bytes
 from nuplan_occ.storage.records import STATUS_FAILED, STATUS_OK, FrameRecord
 from nuplan_occ.storage.tarpack import pack_tar
@@ -139,7 +141,7 @@ class DatasetWriter:
             "status": record.status,
             "failure_reason": record.failure_reason,
             "class_hist": None,
-            **{f"{name}_{field}": None for name in MEMBERS for field in MEMBER_FIELDS},
+            **{f"{name}_{field}": None for name in STORED_MEMBERS for field in MEMBER_FIELDS},
         }
         if record.status == STATUS_FAILED:
             row.update(columns)
@@ -156,7 +158,9 @@ class DatasetWriter:
                                           "token", "timestamp_us", "ego_to_global")}
         frame_json["members"] = {name: MEMBERS[name].suffix for name in sorted(record.arrays)}
         frame_json["columns"] = columns
-        blobs.append((f"{record.key}.json", json.dumps(frame_json, sort_keys=True, allow_nan=False).encode()))
+        frame_json_bytes = json.dumps(frame_json, sort_keys=True, allow_nan=False).encode()
+        row[f"{FRAME_JSON}_crc32"] = zlib.crc32(frame_json_bytes)
+        blobs.append((f"{record.key}.{FRAME_JSON}", frame_json_bytes))
         row.update(columns)
         return row, blobs
 
@@ -263,8 +267,8 @@ class ShardStream:
             rows.append(row)
         data, spans = pack_tar(members)
         for row in rows:
-            for name, spec in MEMBERS.items():
-                span = spans.get(f"{row['key']}.{spec.suffix}")
+            for name in STORED_MEMBERS:
+                span = spans.get(f"{row['key']}.{MEMBERS[name].suffix if name in MEMBERS else FRAME_JSON}")
                 if span is not None:
                     row[f"{name}_offset"], row[f"{name}_nbytes"] = span
         atomic_put(self._writer._fs, shard_path(self._writer._path, self._key), data)

@@ -84,8 +84,8 @@ def test_crash_during_publish_leaves_temp_only_and_rerun_is_identical(tmp_path, 
     with pytest.raises(OSError, match="simulated crash"):
         writer.write_shard("log-b", logs["log-b"])
     monkeypatch.undo()
-    leftovers = [p.name for p in (root / "shards").iterdir()]
-    assert "log-b.tar" not in leftovers and any(name.startswith(".log-b.tar.tmp-") for name in leftovers)
+    assert [p.name for p in (root / "shards").iterdir()] == ["log-a.tar"]  # the failed write removed its temp
+    (root / "shards" / ".log-b.tar.tmp-1-deadbeef").write_bytes(b"half a tar")  # a killed writer's temp file
     fragment_dir = root / "manifest" / "shards" / "log-a"
     (fragment_dir / ".1796162835093246242-11ecdfd64da418a0.parquet.tmp-1-deadbeef").write_bytes(b"half a parquet file")
     assert len(open_dataset(str(root))) == 4

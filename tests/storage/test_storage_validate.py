@@ -14,7 +14,7 @@ from nuplan_occ.grid import GridSpec
 from nuplan_occ.storage import (
     MEMBERS, ChecksumError, DatasetFormatError, DatasetWriter, read_manifest, read_member, validate_dataset,
 )
-from nuplan_occ.storage.manifest import base_schema
+from nuplan_occ.storage.manifest import OPTIONAL_COLUMNS, base_schema
 from nuplan_occ.synth.grid_frames import synthetic_log
 
 SMALL = GridSpec(-4.0, 4.0, -4.0, 4.0, -1.0, 1.0, 0.25)
@@ -41,7 +41,9 @@ def test_real_output_validates_against_json_schemas(root):
 
 
 def test_manifest_schema_lists_every_column():
-    assert schemas.load("manifest")["required"] == base_schema(15).names
+    names = base_schema(15).names
+    assert schemas.load("manifest")["required"] == [n for n in names if n not in OPTIONAL_COLUMNS]
+    assert names[-3:] == ["json_offset", "json_nbytes", "json_crc32"] and set(names[-3:]) == OPTIONAL_COLUMNS
 
 
 def _fragment(root):
