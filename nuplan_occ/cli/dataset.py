@@ -95,19 +95,46 @@ def frames_table(result: dict) -> Table:
 
 
 def eval_cmd(
-    built: str = typer.Argument(..., help="Built dataset root."),
+    built: str = typer.Argument(..., help="Built dataset root, or a folder of model predictions (per-token .npz "
+                                "with key semantics or pred, or .npy; uint8 [x, y, z]): scored with the field's metrics."),
     truth: str = typer.Argument(..., help="Truth dataset root (frames matched by token)."),
-    mask: str = typer.Option("mask_lidar", "--mask", help="Truth member restricting the voxels: mask_lidar, "
-                             "mask_camera or none."),
+    mask: Optional[str] = typer.Option(None, "--mask", help="Truth member restricting the voxels: mask_lidar, "
+                                       "mask_camera or none (default mask_lidar; mask_camera for the field's metrics)."),
+    field: bool = typer.Option(False, "--field", help="Score a built dataset with the field's metrics too "
+                               "(Occ3D-style mIoU, RayIoU, F-score), as a prediction folder is."),
+    pred_grid: Optional[str] = typer.Option(None, "--pred-grid", help="Grid of the prediction files: ours (default), "
+                                            "occ3d, or x_min,x_max,y_min,y_max,z_min,z_max,voxel_size (m)."),
+    pred_labels: str = typer.Option("ours", "--pred-labels", help="Label ids of the prediction files: ours, or "
+                                    "occ3d (as `export --format occ3d` writes them, free = 17)."),
+    rays: bool = typer.Option(True, "--rays/--no-rays", help="Compute RayIoU (the slowest figure)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the full result (per-frame table) here."),
     picture: Optional[Path] = typer.Option(None, "--picture", help="PNG of one matched frame, top-down: built | "
                                            "truth | difference (e.g. an imported release against our build)."),
     token: Optional[str] = typer.Option(None, "--token", help="lidar_pc token of the --picture frame (default: "
                                         "the first matched frame)."),
 ) -> None:
-    """IoU / per-class IoU / mIoU of a built dataset against a truth dataset (frames matched by token)."""
+    """IoU / per-class IoU / mIoU of a built dataset against a truth dataset, or the field's metrics of model
+    predictions (Occ3D-style mIoU, RayIoU at 1 / 2 / 4 m, F-score); frames matched by token."""
     from nuplan_occ.evaluation.datasets import evaluate
+    from nuplan_occ.evaluation.prediction_eval import is_dataset_root, evaluate_predictions
 
+    if field or not is_dataset_root(built):
+        from nuplan_occ.cli.field_eval import field_tables
+
+        mask = mask or "mask_camera"
+        result = evaluate_predictions(built, truth, mask=mask, pred_grid=pred_grid, labels=pred_labels, rays=rays,
+                                      json_path=json_out)
+        for table in field_tables(result):
+            console.print(table)
+        for key, what in (("truth_frames_without_prediction", "truth frames have no prediction"),
+                          ("predictions_without_truth", "predictions have no truth frame"),
+                          ("frames_without_mask", f"truth frames have no {mask}: scored everywhere")):
+            if result[key]:
+                err_console.print(f"{result[key]} {what}")
+        if json_out is not None:
+            console.print(f"JSON written to {json_out}")
+        return
+    mask = mask or "mask_lidar"
     result = evaluate(built, truth, mask=mask, json_path=json_out)
     console.print(eval_table(result))
     console.print(frames_table(result))

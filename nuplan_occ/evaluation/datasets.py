@@ -62,7 +62,7 @@ def pooled_metrics(conf: np.ndarray, class_ids: list[int]) -> dict:
     }
 
 
-def _finite_mean(values: list[float]) -> float:
+def finite_mean(values: list[float]) -> float:
     """Mean of the finite values; NaN if there is none."""
     finite = [v for v in values if np.isfinite(v)]
     return float(np.mean(finite)) if finite else float("nan")
@@ -77,6 +77,12 @@ def _nan_to_none(value):
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
+
+
+def write_json(result: dict, json_path: Path) -> None:
+    """Write an evaluation result as indented JSON (NaN as null, keys as strings), creating the folder."""
+    Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+    Path(json_path).write_text(json.dumps(_nan_to_none(result), indent=2, allow_nan=False) + "\n")
 
 
 def evaluate(built_root: str, truth_root: str, mask: str = "mask_lidar", json_path: Path | None = None) -> dict:
@@ -128,11 +134,10 @@ def evaluate(built_root: str, truth_root: str, mask: str = "mask_lidar", json_pa
         "frames_without_mask": int(without_mask),
         "class_names": {c: truth.labels.get(c, built.labels.get(c))["name"] for c in class_ids},
         "pooled": pooled_metrics(total, class_ids),
-        "mean_frame_iou": _finite_mean([f["iou"] for f in frames]),
-        "mean_frame_miou": _finite_mean([f["miou"] for f in frames]),
+        "mean_frame_iou": finite_mean([f["iou"] for f in frames]),
+        "mean_frame_miou": finite_mean([f["miou"] for f in frames]),
         "frames": frames,
     }
     if json_path is not None:
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(_nan_to_none(result), indent=2, allow_nan=False) + "\n")
+        write_json(result, json_path)
     return result
