@@ -135,6 +135,10 @@ class OccDataset:
         """Frame i's identity (pose, token, log, scene, timestamp, frame index) without reading a shard."""
         return _identity(self._frames([self._check_index(i)], set()).to_pylist()[0])
 
+    def frame_key(self, i: int) -> str:
+        """Frame i's key: its members are `<key>.<suffix>` in its shard."""
+        return self._frames([self._check_index(i)], set()).column("key")[0].as_py()
+
     def get(self, i: int, keys: Iterable[str] | None = None) -> dict:
         """Frame i with only the members `keys` (None: every member it has), plus its identity."""
         return self.get_many([i], keys)[0]

@@ -221,21 +221,37 @@ def stats_tables(stats: dict) -> list[Table]:
     return tables
 
 
-def stats_cmd(out: str = typer.Argument(..., help="Dataset root.")) -> None:
-    """Frames ok/failed, failure reasons, class totals, bytes per frame, QA columns (from the manifest)."""
+STRICT_HELP = "Refuse (exit 1) if a manifest file is unreadable, instead of skipping it with a warning."
+
+
+def stats_cmd(out: str = typer.Argument(..., help="Dataset root."),
+              strict: bool = typer.Option(False, "--strict", help=STRICT_HELP)) -> None:
+    """Frames ok/failed, failure reasons, class totals, bytes per frame, QA columns (from the manifest); the
+    unreadable manifest files skipped, and whose frames that leaves out, are listed last."""
     from nuplan_occ.stats import dataset_stats
 
-    for table in stats_tables(dataset_stats(out)):
+    stats = dataset_stats(out, strict=strict)
+    for table in stats_tables(stats):
         console.print(table)
+    if stats["damaged"]:
+        damaged = Table(title="unreadable manifest files (skipped; figures above exclude their rows)")
+        for name in ("file", "shard", "what readers see"):
+            damaged.add_column(name, overflow="fold")
+        for d in stats["damaged"]:
+            seen = {"superseded": "a newer commit (nothing missing)", "unreadable": "its frames are missing",
+                    "fallback": f"earlier commit {d['fallback_commit']}"}[d["outcome"]]
+            damaged.add_row(d["path"], d["shard_folder"] or "(any)", seen)
+        console.print(damaged)
 
 
 def validate_cmd(out: str = typer.Argument(..., help="Dataset root.")) -> None:
-    """Check metadata, manifest and every stored member; exit 1 if any problem is found."""
+    """Check metadata, manifest (every file readable) and every stored member, the frames' json included;
+    exit 1 if any problem is found."""
     from nuplan_occ.storage.validate import validate_dataset
 
     problems = validate_dataset(out)
     for problem in problems:
-        console.print(f"[red]problem[/red] {problem}", highlight=False)
+        console.print(f"[red]problem[/red] {problem}", highlight=False, soft_wrap=True)
     if problems:
         err_console.print(f"{len(problems)} problem(s) in {out}")
         raise typer.Exit(code=1)
@@ -251,9 +267,11 @@ def export_cmd(
                                              help="mesh: the nuPlan data root the dataset was built from."),
     token: Optional[str] = typer.Option(None, "--token", help="mesh: only this frame's scene, objects placed "
                                         "at this frame (default: every scene, at its first frame)."),
+    strict: bool = typer.Option(False, "--strict", help=STRICT_HELP),
 ) -> None:
     """Write the ok frames as Occ3D-style labels.npz or UniScenev2-style dense .npy files, or each scene's
-    reconstructed background and object surfaces as meshes (GLB for Blender, PLY for MeshLab)."""
+    reconstructed background and object surfaces as meshes (GLB for Blender, PLY for MeshLab). A frame that
+    cannot be read is skipped with one line naming it and its member; the rest are written, then exit 1."""
     if format == "mesh":
         from nuplan_occ.export.meshes import export_meshes
         from nuplan_occ.stages import PIPELINE
@@ -267,27 +285,36 @@ def export_cmd(
         return
     from nuplan_occ.export.formats import export_dataset
 
-    summary = export_dataset(out, dest, format)
+    summary = export_dataset(out, dest, format, strict=strict)
+    for skipped in summary["skipped"]:
+        err_console.print(f"skipped frame {skipped['frame']}, member {skipped['member']}: {skipped['problem']}",
+                          highlight=False, soft_wrap=True)
     console.print(f"{summary['frames']} frames exported to {dest} ({format}); remap and frame list in "
                   f"{os.path.join(str(dest), 'export.json')}")
     missing = {k: v for k, v in summary["frames_without"].items() if v}
     if missing:
         err_console.print(f"frames without a mask member (key omitted in their files): {json.dumps(missing)}")
+    if summary["skipped"] or summary["damaged_manifest"]:
+        err_console.print(f"{len(summary['skipped'])} frame(s) skipped, {len(summary['damaged_manifest'])} "
+                          "unreadable manifest file(s): the export is incomplete", highlight=False)
+        raise typer.Exit(code=1)
 
 
-def compact_cmd(out: str = typer.Argument(..., help="Dataset root (path or fsspec URL).")) -> None:
+def compact_cmd(out: str = typer.Argument(..., help="Dataset root (path or fsspec URL)."),
+                strict: bool = typer.Option(False, "--strict", help="Refuse to compact (exit 1) if a manifest "
+                                            "file is unreadable.")) -> None:
     """Fold the manifest's fragments into one large file, dropping superseded rows (readers see the same
-    rows; safe while builds run; run one compaction at a time)."""
+    rows; safe while builds run; run one compaction at a time). Unreadable manifest files are left where
+    they are, never folded or deleted; they are named and the exit code is 1."""
     from nuplan_occ.storage.compact import compact
-    from nuplan_occ.storage.errors import StorageError
 
-    try:
-        result = compact(out)
-    except StorageError as exc:
-        err_console.print(f"error: {exc}", highlight=False)
-        raise typer.Exit(code=1) from None
+    result = compact(out, strict=strict)
     console.print(f"{out}: {result.files_before} manifest file(s), {result.rows_before:,} rows -> "
-                  f"{result.output} ({result.rows_after:,} visible rows)", highlight=False)
+                  f"{result.output} ({result.rows_after:,} visible rows)", highlight=False, soft_wrap=True)
+    if result.damaged:
+        err_console.print(f"{len(result.damaged)} unreadable manifest file(s) left in place, not folded",
+                          highlight=False)
+        raise typer.Exit(code=1)
 
 
 def report_cmd(

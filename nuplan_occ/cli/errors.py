@@ -3,12 +3,15 @@
 An expected failure (bad or missing input, a refused pickle, a bad config, a dataset that breaks the
 format) ends the command with ONE line on stderr, `<prog>: error: <file>: <problem>`, and exit code 1.
 The global option `--debug` (before the command: `nuplan-occ --debug stats out/`) re-raises instead,
-so the full traceback is shown. Anything else (a bug) always shows its traceback.
+so the full traceback is shown. Anything else (a bug) always shows its traceback. A warning about
+damaged input the command skipped (`storage.errors.DamagedManifestWarning`) is one line on stderr,
+`<prog>: warning: <file>: <problem>`.
 """
 
 from __future__ import annotations
 
 import sys
+import warnings
 from typing import Any
 
 import typer
@@ -52,8 +55,20 @@ class CliApp(typer.Typer):
             self.debug = debug
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        from nuplan_occ.storage.errors import DamagedManifestWarning
+
+        shown = warnings.showwarning
+
+        def show(message, category, *rest: Any, **options: Any) -> None:
+            if issubclass(category, DamagedManifestWarning):
+                print(f"{self.prog}: warning: {one_line(message)}", file=sys.stderr)
+            else:
+                shown(message, category, *rest, **options)
+
         try:
-            return super().__call__(*args, **kwargs)
+            with warnings.catch_warnings():
+                warnings.showwarning = show
+                return super().__call__(*args, **kwargs)
         except Exception as exc:
             if self.debug or not isinstance(exc, expected_errors() + self.extra_errors):
                 raise

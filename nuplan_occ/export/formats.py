@@ -8,6 +8,10 @@ Besides the frame files, `<dest>/export.json` records the format, grid, label re
 log, scene, token, timestamp and T_global_from_ego (for building a consumer's info file; null where the
 dataset does not know them, e.g. an imported release without its logs, whose occ3d folder is
 `unknown_log`).
+A frame whose members cannot be read (checksum mismatch, truncated or missing shard, undecodable or
+unmappable data) is skipped and listed (frame key, token, member, problem); the other frames are
+written. Unreadable manifest files are skipped as `open_dataset` skips them (listed too), or refused
+with strict=True.
 
 format "occ3d": `<dest>/<log>/<token>/labels.npz` (np.savez_compressed) with
     semantics    uint8 [X, Y, Z], Occ3D-nuScenes id layout (classes 0-16, free = 17), remapped by OCC3D_REMAP;
@@ -47,6 +51,7 @@ import numpy as np
 
 from nuplan_occ.dataset import open_dataset
 from nuplan_occ.labels import LABELS
+from nuplan_occ.storage.errors import ChecksumError, StorageError
 
 FORMATS = ("occ3d", "uniscene")
 BATCH = 8
@@ -141,37 +146,92 @@ def _group_by_members(ds, indices: range, wanted: tuple[str, ...]) -> dict[tuple
     return groups
 
 
-def export_dataset(root: str, dest: str | Path, format: str) -> dict:  # noqa: A002 (CLI name)
+def _frame_entry(frame: dict, dest: Path, fmt: str, shape: tuple[int, int, int]) -> dict:
+    """Write one frame's file; its entry in the frame list."""
+    return {"file": _write_frame(frame, dest, fmt, shape), "token": frame["token"], "log_name": frame["log_name"],
+            "scene_token": frame["scene_token"], "frame_index": frame["frame_index"],
+            "timestamp_us": frame["timestamp_us"], "ego_to_global": _pose_or_none(frame["ego_to_global"])}
+
+
+READ_ERRORS = (StorageError, OSError)
+"""What reading one frame's members may raise for damaged data (checksum, truncated or missing shard)."""
+
+
+def _skipped(ds, i: int, member: str, exc: Exception) -> dict:
+    """The skipped-frame entry of frame i: `member` could not be read or converted (`exc`)."""
+    identity = ds.identity(i)
+    frame = exc.frame_key if isinstance(exc, ChecksumError) else ds.frame_key(i)
+    return {"frame": frame, "token": identity["token"], "log_name": identity["log_name"], "member": member,
+            "problem": str(exc)}
+
+
+def _unreadable(ds, i: int, keys: tuple[str, ...], exc: Exception) -> dict:
+    """The skipped-frame entry of frame i whose members `keys` could not be read together (`exc`): the
+    first member that fails on its own is named."""
+    if isinstance(exc, ChecksumError):
+        return _skipped(ds, i, exc.member, exc)
+    for member in keys:
+        try:
+            ds.get(i, keys=(member,))
+        except READ_ERRORS as own:
+            return _skipped(ds, i, member, own)
+    return _skipped(ds, i, keys[0], exc)
+
+
+def _read_batch(ds, indices: list[int], keys: tuple[str, ...]) -> list[tuple[int, dict | Exception]]:
+    """(index, frame or the error reading it) of frames `indices`, read together; when that fails, one
+    frame at a time, so that only the bad frames fail."""
+    try:
+        return list(zip(indices, ds.get_many(indices, keys=keys)))
+    except READ_ERRORS:
+        pass
+    out: list[tuple[int, dict | Exception]] = []
+    for i in indices:
+        try:
+            out.append((i, ds.get(i, keys=keys)))
+        except READ_ERRORS as exc:
+            out.append((i, exc))
+    return out
+
+
+def export_dataset(root: str, dest: str | Path, format: str, *, strict: bool = False) -> dict:  # noqa: A002
     """Write the ok frames of the dataset at `root` under `dest` in `format` ("occ3d" | "uniscene").
 
     Returns {"format", "source", "dest", "frames", "frames_without": {mask member: count} (occ3d),
-    "remap": remap rows (occ3d: our id -> Occ3D id; uniscene: identity), "grid"}; the same plus the frame
-    list is written to `<dest>/export.json`.
+    "remap": remap rows (occ3d: our id -> Occ3D id; uniscene: identity), "grid", "skipped": [{"frame",
+    "token", "log_name", "member", "problem"}] (frames not written), "damaged_manifest": [one line per
+    unreadable manifest file skipped]}; the same plus the frame list is written to `<dest>/export.json`.
+    strict: refuse a dataset with an unreadable manifest file (DatasetFormatError).
     """
     if format not in FORMATS:
         raise ExportError(f"format {format!r}: use one of {FORMATS} or mesh")
-    ds = open_dataset(root)
+    ds = open_dataset(root, strict=strict)
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     if format == "uniscene":
         (dest / uniscene_folder(ds.grid.shape)).mkdir(exist_ok=True)
     wanted = ("semantics", *MASK_MEMBERS) if format == "occ3d" else ("semantics",)
-    frames, without = [], {m: 0 for m in MASK_MEMBERS}
+    frames, skipped, without = [], [], {m: 0 for m in MASK_MEMBERS}
     for start in range(0, len(ds), BATCH):
         for keys, indices in _group_by_members(ds, range(start, min(start + BATCH, len(ds))), wanted).items():
-            for frame in ds.get_many(indices, keys=keys):
+            for i, frame in _read_batch(ds, indices, keys):
+                if isinstance(frame, Exception):
+                    skipped.append(_unreadable(ds, i, keys, frame))
+                    continue
+                try:
+                    frames.append(_frame_entry(frame, dest, format, ds.grid.shape))
+                except ExportError as exc:
+                    skipped.append(_skipped(ds, i, "semantics", exc))
+                    continue
                 for m in MASK_MEMBERS:
                     without[m] += m not in frame
-                frames.append({"file": _write_frame(frame, dest, format, ds.grid.shape), "token": frame["token"],
-                               "log_name": frame["log_name"], "scene_token": frame["scene_token"],
-                               "frame_index": frame["frame_index"], "timestamp_us": frame["timestamp_us"],
-                               "ego_to_global": _pose_or_none(frame["ego_to_global"])})
     if format == "occ3d":
         remap = remap_table()
     else:
         remap = [{"id": i, "name": name, "uniscene_id": i} for i, name in sorted(LABELS.names.items())]
     summary = {"format": format, "source": str(root), "dest": str(dest), "frames": len(frames),
                "frames_without": without if format == "occ3d" else {}, "remap": remap,
-               "grid": ds.grid.to_dict()}
+               "grid": ds.grid.to_dict(), "skipped": skipped,
+               "damaged_manifest": [damaged.describe() for damaged in ds.damaged]}
     (dest / "export.json").write_text(json.dumps({**summary, "frame_list": frames}, indent=1) + "\n")
     return summary
