@@ -130,7 +130,10 @@ def _ego_box_entry(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return np.where((t_near <= t_far) & (t_far > 0), np.maximum(t_near, 0.0), np.inf)
 
 
-def _cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def cast_rays(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray,
+              dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(distance to the first hit (N,) m, inf for none; its triangle (N,); its unit normal (N, 3)) of rays
+    origins (N, 3) + t * unit dirs (N, 3) in the scene's frame."""
     rays = o3d.core.Tensor(np.ascontiguousarray(np.concatenate([origins, dirs], axis=1), dtype=np.float32))
     out = scene.cast_rays(rays)
     return out["t_hit"].numpy().astype(np.float64), out["primitive_ids"].numpy().astype(np.int64), out["primitive_normals"].numpy()
@@ -155,8 +158,8 @@ def simulate_sweep(world: World, t: float, T_local_from_ego: np.ndarray, rig: tu
     o_l, d_l = rotate(o_e, R) + p, rotate(d_e, R)
     static = world.static_mesh()
     agents = world.agent_mesh(t)
-    t_s, id_s, n_s = _cast(world.static_scene(), o_l, d_l)
-    t_a, id_a, n_a = _cast(raycasting_scene(agents.triangles), o_l, d_l)
+    t_s, id_s, n_s = cast_rays(world.static_scene(), o_l, d_l)
+    t_a, id_a, n_a = cast_rays(raycasting_scene(agents.triangles), o_l, d_l)
     use_agent = t_a < t_s
     rng_hit = np.where(use_agent, t_a, t_s)
     valid = np.isfinite(rng_hit) & (rng_hit <= max_range) & (rng_hit > 0.3)

@@ -1,5 +1,5 @@
 """The nuPlan DB content (`LogContent`) of a synthetic log: logged (imperfect) ego poses, scenes, 20 Hz
-frames, tracks and noisy boxes, the MergedPointCloud calibration and 8 cameras. Frames: ego poses and
+frames, tracks and noisy boxes, the MergedPointCloud calibration, 8 cameras and their image rows. Frames: ego poses and
 boxes in "global" (UTM); camera and lidar extrinsics sensor -> ego."""
 
 from __future__ import annotations
@@ -9,12 +9,12 @@ from datetime import datetime, timedelta, timezone
 
 import numpy as np
 
-from nuplan_occ.geometry import make_transform
 from nuplan_occ.io.types import (
-    CAMERA_CHANNELS, LIDAR_CHANNEL, Boxes, CameraCalibration, EgoPoseRecord, LidarCalibration, LidarFrame, LogContent,
-    LogMeta, SceneRecord, TrackRecord,
+    LIDAR_CHANNEL, Boxes, EgoPoseRecord, LidarCalibration, LidarFrame, LogContent, LogMeta, SceneRecord, TrackRecord,
 )
 from nuplan_occ.io.writer import new_token
+from nuplan_occ.synth.auto_label import LabelFailures, apply_label_failures
+from nuplan_occ.synth.cameras import camera_rig, image_records
 from nuplan_occ.synth.imperfect import logged_poses, noisy_boxes, pose_errors, track_size_bias
 from nuplan_occ.synth.lidar import T_EGO_FROM_LIDAR
 from nuplan_occ.synth.world import World
@@ -23,8 +23,6 @@ FRAME_US = 50_000
 """lidar_pc period (20 Hz)."""
 
 _BASE_TIME = datetime(2021, 5, 12, 22, 0, 38, tzinfo=timezone.utc)
-_CAMERA_YAW_DEG = {"CAM_F0": 0, "CAM_L0": 55, "CAM_L1": 110, "CAM_L2": 150, "CAM_B0": 180, "CAM_R0": -55,
-                   "CAM_R1": -110, "CAM_R2": -150}
 
 
 def log_start(seed: int, log_index: int) -> datetime:
@@ -49,22 +47,6 @@ def scene_count(seconds: float, scene_seconds: float, min_scenes: int = 5) -> in
     return max(min_scenes, int(round(seconds / scene_seconds)))
 
 
-def cameras(rng: np.random.Generator) -> list[CameraCalibration]:
-    """8 pinhole cameras (1920 x 1080) around the roof, OpenCV axes (x right, y down, z forward)."""
-    out = []
-    for channel in CAMERA_CHANNELS:
-        yaw = np.radians(_CAMERA_YAW_DEG[channel])
-        forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-        right = np.array([np.sin(yaw), -np.cos(yaw), 0.0])
-        R = np.stack([right, np.array([0.0, 0.0, -1.0]), forward], axis=1)  # columns: camera axes in ego
-        position = np.array([1.6, 0.0, 1.75]) + 0.6 * forward * [1.0, 1.0, 0.0]
-        f = 1545.0 * rng.uniform(0.98, 1.02)
-        K = np.array([[f, 0.0, 960.0 + rng.normal(0, 4)], [0.0, f, 560.0 + rng.normal(0, 4)], [0.0, 0.0, 1.0]])
-        dist = np.array([-0.35, 0.12, 0.0, 0.0, -0.02]) + rng.normal(0, [0.01, 0.005, 1e-4, 1e-4, 0.002])
-        out.append(CameraCalibration(new_token(rng), channel, "synthetic-pinhole", K, dist, make_transform(R, position), 1920, 1080))
-    return out
-
-
 @dataclass
 class LogPlan:
     """A log's content plus what the truth pass needs: TRUE T_global_from_ego (F, 4, 4) per frame, and
@@ -73,20 +55,24 @@ class LogPlan:
     content: LogContent
     true_poses: np.ndarray
     frame_scene: list[SceneRecord]
+    label_failures: LabelFailures | None = None
+    """Which tracks the auto-label failures of the world's options hit (synth.auto_label)."""
 
 
 def build_log(world: World, seconds: float, seed: int, log_index: int, start: datetime,
-              scene_seconds: float | None = None) -> LogPlan:
+              scene_seconds: float | None = None, image_every: int = 0) -> LogPlan:
     """LogContent of `world` over `seconds` (frames at 20 Hz from world.start_us). scene_seconds: length of
     a scene (None: the preset's, with at least 5 scenes per log; given: exactly about seconds / scene_seconds
-    scenes, at least one)."""
+    scenes, at least one). image_every: `image` rows for the 8 cameras at every image_every-th frame
+    (`cameras.image_records`; 0: none; their tokens come from a stream of their own, so the rest of the
+    content is the same with or without them)."""
     rng = np.random.default_rng([seed, log_index, 0x70CE])
     opts = world.options
     n_frames = frame_count(seconds)
     logfile = logfile_name(start, log_index, n_frames)
     meta = LogMeta(new_token(rng), logfile, "veh-35", f"{start:%Y-%m-%d}", world.start_us, world.location, world.location)
     lidar = LidarCalibration(new_token(rng), LIDAR_CHANNEL, "synthetic-5-lidar-merged", T_EGO_FROM_LIDAR.copy())
-    cams = cameras(rng)
+    cams = camera_rig(rng)
 
     ego_step = int(round(1e6 / opts.ego_pose_hz))
     ego_us = np.arange(0, (n_frames - 1) * FRAME_US + 1, ego_step, dtype=np.int64)
@@ -135,5 +121,9 @@ def build_log(world: World, seconds: float, seed: int, log_index: int, start: da
         boxes[frame.token] = Boxes("global", c, sz, y, np.array([states[k][2][i] for k in near]).reshape(-1, 3),
                                    [boxed[k].category for k in near], [tracks[k].token for k in near],
                                    [new_token(rng) for _ in near])
-    content = LogContent(meta, lidar, cams, ego_poses, scenes, frames, tracks, boxes)
-    return LogPlan(content, true_frame_poses, frame_scene)
+    tracks, boxes, failures = apply_label_failures(world, boxed, tracks, boxes, frames, true_frame_poses, opts,
+                                                   np.random.default_rng([seed, log_index, 0xBAD1]))
+    images = (image_records(frames, cams, logfile, image_every, np.random.default_rng([seed, log_index, 0xCA3E]))
+              if image_every else [])
+    content = LogContent(meta, lidar, cams, ego_poses, scenes, frames, tracks, boxes, images)
+    return LogPlan(content, true_frame_poses, frame_scene, failures)

@@ -12,6 +12,12 @@ instance (uint16): the object's instance id (1..K) in its voxels, 0 elsewhere.
 mask_lidar (bool): voxels observed by the rig at that frame = traversed by a returned ray on its exact
 (noise-free) segment from the sensor origin to the surface hit, or containing the hit. Dropped rays and
 rays without a return observe nothing.
+mask_camera (bool, when the cameras are given): the voxels the cameras see, by the rule of the build's
+mask_camera (nuplan_occ.rays.visibility: pinhole frustum of each camera's K and image size, lens
+distortion ignored; along a ray the voxels up to and including the first occupied one, within
+CAMERA_MAX_RANGE_M) applied to the TRUE occupancy (semantics > 0) with one ray through every pixel cell
+of every camera (the build's pixel lattice at its finest, in one range band), where the build samples
+rays about a voxel apart: so the truth's mask is exact at the cameras' resolution.
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ from __future__ import annotations
 import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.io.types import CameraCalibration
 from nuplan_occ.labels import OTHER, OTHER_GROUND, ROAD, ROAD_LINE
+from nuplan_occ.rays.visibility import camera_visibility
 from nuplan_occ.synth.agents import posed_prisms, shape_parts
 from nuplan_occ.synth.lidar import Sweep, sweep_at
 from nuplan_occ.synth.voxelize import prism_voxel_hits, reduce_labels, segment_voxels, triangle_voxel_hits
@@ -28,6 +36,8 @@ from nuplan_occ.synth.world import World
 _RANK = np.zeros(256, np.int64)
 _RANK[[OTHER_GROUND, ROAD, ROAD_LINE, OTHER]] = [1, 2, 3, 4]
 _OBJECT_RANK = 5
+CAMERA_MAX_RANGE_M = 60.0
+"""Farthest distance (m) a camera observes in mask_camera: the build's default (visibility.camera_max_range_m)."""
 
 
 def upright_yaw(T_local_from_ego: np.ndarray) -> float:
@@ -100,13 +110,25 @@ def lidar_mask(sweep: Sweep, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
     return mask.reshape(grid.shape)
 
 
+def camera_mask(semantics: np.ndarray, cameras: list[CameraCalibration], grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """(nx, ny, nz) bool mask_camera of a truth grid `semantics` (ego frame) seen by `cameras` (module doc)."""
+    if not cameras:
+        return np.zeros(grid.shape, dtype=bool)
+    finest = 0.5 / max(float(max(c.K[0, 0], c.K[1, 1])) for c in cameras)  # below one pixel: the lattice's floor
+    return camera_visibility(semantics > 0, cameras, grid, CAMERA_MAX_RANGE_M, angular_step_rad=finest, range_bands=1)
+
+
 def truth_for_frame(world: World, t_us: int, T_global_from_ego_true: np.ndarray, grid: GridSpec = DEFAULT_GRID,
-                    sweep: Sweep | None = None) -> dict[str, np.ndarray]:
+                    sweep: Sweep | None = None, cameras: list[CameraCalibration] | None = None) -> dict[str, np.ndarray]:
     """Truth of one frame at absolute time t_us (us) in the ego frame of the TRUE pose T_global_from_ego_true
-    (4, 4): {"semantics": uint8, "instance": uint16, "mask_lidar": bool}, each of grid.shape, [x, y, z].
-    `sweep` (the rig's sweep at that time and pose) is simulated when not given."""
+    (4, 4): {"semantics": uint8, "instance": uint16, "mask_lidar": bool, and "mask_camera": bool when
+    `cameras` are given}, each of grid.shape, [x, y, z]. `sweep` (the rig's sweep at that time and pose) is
+    simulated when not given."""
     T_local = world.local_from_global(T_global_from_ego_true)
     semantics, instance = semantic_truth(world, float(world.seconds(t_us)), T_local, grid)
     if sweep is None:
         sweep = sweep_at(world, t_us, T_global_from_ego_true)
-    return {"semantics": semantics, "instance": instance, "mask_lidar": lidar_mask(sweep, grid)}
+    arrays = {"semantics": semantics, "instance": instance, "mask_lidar": lidar_mask(sweep, grid)}
+    if cameras is not None:
+        arrays["mask_camera"] = camera_mask(semantics, cameras, grid)
+    return arrays

@@ -46,14 +46,14 @@ def _digest(root: Path) -> dict[str, str]:
 def out(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth_a")
     messages = []
-    result = synthesize(root, logs=1, seconds=SECONDS, seed=3, progress=messages.append)
+    result = synthesize(root, logs=1, seconds=SECONDS, seed=3, progress=messages.append, camera_mask=False)
     assert messages and result.truth_frames == 10
     return root, result
 
 
 def test_same_seed_same_bytes(out, tmp_path):
     root, _ = out
-    synthesize(tmp_path, logs=1, seconds=SECONDS, seed=3)
+    synthesize(tmp_path, logs=1, seconds=SECONDS, seed=3, camera_mask=False)
     assert _digest(root) == _digest(tmp_path)
 
 
@@ -118,10 +118,13 @@ def test_bad_arguments_raise(tmp_path):
         synthesize(tmp_path, preset="huge")
     with pytest.raises(ValueError, match="truth_rate_hz"):
         synthesize(tmp_path, truth_rate_hz=7.0)
+    with pytest.raises(ValueError, match="camera_rate_hz"):
+        synthesize(tmp_path, camera_rate_hz=3.0)
 
 
 def test_scene_seconds_lets_one_scene_span_the_log(tmp_path):
-    result = synthesize(tmp_path, logs=1, seconds=SECONDS, seed=3, scene_seconds=SECONDS, truth_rate_hz=10.0)
+    result = synthesize(tmp_path, logs=1, seconds=SECONDS, seed=3, scene_seconds=SECONDS, truth_rate_hz=10.0,
+                        camera_rate_hz=0.0, camera_mask=False)
     assert result.truth_frames == 5
     with NuplanLog(result.db_paths[0]) as log:
         assert len(log.scenes) == 1 and len(log.frames_of_scene(log.scenes[0].token)) == 10
