@@ -174,6 +174,17 @@ def find_map(maps_root: str | Path, map_name: str) -> Path:
     return candidates[-1]
 
 
+def usable_map(maps_root: str | Path, map_name: str) -> tuple[Path | None, str]:
+    """The newest readable map of a log (`find_map`, then its GPKG layers and meta table opened) and "", or
+    None and the one-line reason no map can be used (the MapError's text, naming the folder or file)."""
+    try:
+        path = find_map(maps_root, map_name)
+        NuplanMap(path)
+    except MapError as exc:
+        return None, f"no usable map: {exc}; ground voxels keep the label other (no road, road_line or other_ground)"
+    return path, ""
+
+
 def _empty_layer() -> MapLayer:
     return MapLayer(geometries=np.empty(0, dtype=object), attributes={"fid": np.zeros(0, dtype=np.int64)})
 

@@ -456,6 +456,14 @@ class NuplanLog:
         xyz = (1.0 - alpha) * poses.xyz[a] + alpha * poses.xyz[b]
         return make_transform(quaternion_to_matrix(q), xyz)
 
+    def nearest_pose(self, timestamp_us: int) -> np.ndarray:
+        """T_global_from_ego (4, 4) of the usable ego_pose row nearest in time: a stand-in for a frame that gets
+        no pose (never its pose). PoseGapError when the table has no usable row."""
+        times = self.ego_poses.timestamps_us
+        if not len(times):
+            raise PoseGapError(self.path, "table ego_pose has no usable row")
+        return self.ego_poses.T_global_from_ego(int(np.argmin(np.abs(times - timestamp_us))))
+
     def frame_pose(self, frame: LidarFrame) -> np.ndarray:
         """T_global_from_ego (4, 4) at the frame's lidar_pc timestamp (PoseGapError: see ego_pose_at)."""
         try:

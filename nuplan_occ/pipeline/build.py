@@ -9,6 +9,7 @@ of build processes (disjoint or overlapping logs, any machines) may write into o
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import time
 from collections import Counter, defaultdict
@@ -17,6 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from nuplan_occ.io.data_root import maps_root_for, resolve_logs, sensor_root_for
+from nuplan_occ.io.maps import usable_map
 from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.pipeline.build_log import BuildLog
 from nuplan_occ.pipeline.executors import execute
@@ -84,12 +86,16 @@ def logs_of_shard(db_paths: list[Path], num_shards: int, shard_index: int) -> li
 
 def plan_tasks(db_paths: list[Path], data_root: Path, maps_root: Path, out: str, work_root: Path,
                params: dict[str, Any], keep_work: str = "default") -> list[SceneTask]:
-    """One task per scene with at least one sweep, in log then scene-name order."""
+    """One task per scene with at least one sweep, in log then scene-name order. Warns once per log (logger
+    `nuplan_occ.build`, shown on the console) when the log has no usable map or rows were dropped on reading."""
     tasks = []
     for db_path in db_paths:
         sensor_root = sensor_root_for(db_path, data_root)
         with NuplanLog(db_path, sensor_root) as log:
             log_name = log.meta.logfile or db_path.stem
+            for note in [*log.notes, usable_map(maps_root, log.meta.map_name)[1]]:
+                if note:
+                    logging.getLogger("nuplan_occ.build").warning("warning: %s: %s", log_name, note)
             for scene in log.scenes:
                 if log.frames_of_scene(scene.token):
                     tasks.append(SceneTask(str(db_path), str(sensor_root), str(maps_root), log_name,

@@ -87,6 +87,8 @@ class Sweep:
     is_output: True for the sweeps written to the dataset (the output rate, e.g. every other sweep).
     output_index: an output sweep's index among its scene's output frames (the manifest's `output_index`,
     see `nuplan_occ.storage.clips`); -1 for the other sweeps.
+    dropped_points: points of the sweep's PCD that no LiDAR can have measured, dropped on reading
+    (`nuplan_occ.io.pcd.usable_points`).
     """
 
     token: str
@@ -99,6 +101,7 @@ class Sweep:
     is_output: bool
     failure: str = ""
     output_index: int = -1
+    dropped_points: int = 0
 
     @property
     def has_cloud(self) -> bool:
@@ -124,6 +127,8 @@ class SceneData:
 
     sensor_origin_ego: (3,) origin of the merged LiDAR frame in the ego frame (the rays' start point).
     instance_ids: track token -> instance id, stable over the whole log (1-based; 0 = background).
+    map_path: the log's usable map file, None without one; map_problem: then why (one line naming the folder or
+    file), "" with a map.
     """
 
     task: SceneTask
@@ -134,6 +139,7 @@ class SceneData:
     map_path: str | None
     instance_ids: dict[str, int]
     track_categories: dict[str, str]
+    map_problem: str = ""
 
     def output_positions(self) -> list[int]:
         """Positions (in self.sweeps) of the sweeps written to the dataset, loaded or not."""

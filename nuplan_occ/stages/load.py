@@ -4,22 +4,29 @@ with context sweeps of the same log around it (aggregated, not written).
 Inputs: the scene task. Outputs: `scene` (SceneData). Not cached: reading is cheaper than storing. The
 sweeps' points are spilled to an unnamed file of the scene's work folder as they are read and read back
 per sweep by the stages (nuplan_occ.pipeline.spilled_clouds), so no stage holds the whole scene's clouds.
-A sweep whose PCD is missing or corrupt is kept with its failure reason; the scene goes on without it.
+A worker keeps its last log open (`open_log`), so the scenes of one log it builds in a row read the DB once.
+A sweep whose PCD is missing, corrupt, empty or outside sensor_blobs, whose pose the log cannot give
+(PoseGapError), or one of whose boxes is bad is kept with its failure reason (one line); the scene goes on
+without it. A scene none of whose output sweeps loaded fails at once, naming the blobs' folder and count.
+A missing or unreadable map is kept as `map_problem` (the build warns once per log; the manifest's
+qa_map_status carries it).
 """
 
 from __future__ import annotations
 
+import os
+import threading
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from nuplan_occ.io.errors import NuplanFormatError
-from nuplan_occ.io.maps import find_map
-from nuplan_occ.io.reader import NuplanLog
-from nuplan_occ.io.types import LidarFrame, PointCloud
-from nuplan_occ.io.errors import MapError
-from nuplan_occ.pipeline.scene import SceneData, Sweep, output_slots
+from nuplan_occ.io.errors import MapError, MissingBlobError, NuplanFormatError, PoseGapError
+from nuplan_occ.io.maps import find_map, usable_map
+from nuplan_occ.io.reader import NuplanLog, SceneBoxes
+from nuplan_occ.io.types import Boxes, LidarFrame, PointCloud
+from nuplan_occ.pipeline.scene import SceneData, SceneTask, Sweep, output_slots
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.spilled_clouds import SpilledClouds
 from nuplan_occ.pipeline.stage import Stage
@@ -37,6 +44,26 @@ class LoadParams:
     def __post_init__(self) -> None:
         if self.rate_hz > self.sweep_rate_hz:
             raise ValueError(f"rate_hz {self.rate_hz:g} exceeds the sweep rate {self.sweep_rate_hz:g} Hz")
+
+
+_open: dict[str, tuple[tuple, NuplanLog]] = {}
+"""The log this worker (process and thread) has open: its identity key and the reader."""
+
+
+def open_log(db_path: str, sensor_root: str) -> NuplanLog:
+    """The reader of a log DB, reused while the same process and thread asks for the same unchanged file
+    (path, sensor root, inode, size and mtime); the previously open log is closed when another is asked for."""
+    st = os.stat(db_path)
+    key = (db_path, sensor_root, st.st_ino, st.st_size, st.st_mtime_ns)
+    slot = f"{os.getpid()}:{threading.get_ident()}"
+    held = _open.get(slot)
+    if held is not None and held[0] == key:
+        return held[1]
+    if held is not None:
+        held[1].close()
+    log = NuplanLog(db_path, sensor_root)
+    _open[slot] = (key, log)
+    return log
 
 
 def context_frames(log_frames: list[LidarFrame], own: list[LidarFrame], seconds: float, stride: int) -> list[LidarFrame]:
@@ -58,52 +85,87 @@ def compact(cloud: PointCloud) -> PointCloud:
     return replace(cloud, xyz=cloud.xyz.astype(np.float32))
 
 
+def read_sweep(log: NuplanLog, frame: LidarFrame, boxes: SceneBoxes, store: SpilledClouds,
+               slots: dict[str, int]) -> tuple[Sweep, NuplanFormatError | None]:
+    """One sweep (points spilled to `store`) and the error that failed it, if any. A sweep without a pose keeps
+    the nearest usable logged pose as a stand-in (registration needs one per sweep; its points are not used)."""
+    error: NuplanFormatError | None = None
+    try:
+        pose = log.frame_pose(frame)
+    except PoseGapError as exc:
+        pose, error = log.nearest_pose(frame.timestamp_us), exc
+    boxes_global = Boxes.empty("global")
+    cloud, dropped = None, 0
+    try:
+        boxes_global = boxes.of(frame)
+        if error is None:
+            points, lost = log.load_sweep(frame)
+            cloud = store.add(compact(points.transformed(log.lidar.T_ego_from_lidar, "ego")))
+            dropped = lost.total
+    except NuplanFormatError as exc:
+        error = error or exc
+    boxes_ego = boxes_global.transformed(np.linalg.inv(pose), "ego")
+    sweep = Sweep(frame.token, frame.index, frame.timestamp_us, pose, cloud, boxes_ego, boxes_global,
+                  frame.token in slots, str(error) if error else "", slots.get(frame.token, -1), dropped)
+    return sweep, error
+
+
+def scene_failure(task: SceneTask, log: NuplanLog, frames: list[LidarFrame], sweeps: list[Sweep],
+                  errors: list[NuplanFormatError | None]) -> NuplanFormatError | None:
+    """The error a scene fails with when none of its output sweeps loaded (None when one did): when their blobs
+    are all missing, the folder they should be in and their count; else the first error and a count per kind."""
+    outputs = [(frame, error) for frame, sweep, error in zip(frames, sweeps, errors) if sweep.is_output]
+    failed = [(frame, error) for frame, error in outputs if error is not None]
+    if not outputs or len(failed) < len(outputs):
+        return None
+    if all(isinstance(error, MissingBlobError) for _, error in failed):
+        folder = Path(os.path.commonpath([log.blob_path(frame).parent for frame, _ in failed]))
+        state = "" if folder.is_dir() else "; the folder does not exist"
+        return MissingBlobError(folder, f"{len(failed)} of the {len(outputs)} output sweeps' point cloud blobs of "
+                                        f"scene {task.scene_name} are missing{state}")
+    first = failed[0][1]
+    kinds = ", ".join(f"{n} {kind}" for kind, n in Counter(type(e).__name__ for _, e in failed).most_common())
+    return type(first)(first.path, f"none of the {len(outputs)} output sweeps of scene {task.scene_name} loaded "
+                                   f"({kinds}); first: {first.problem}")
+
+
 def run(inputs: dict, params: LoadParams) -> dict:
     task = inputs["task"]
+    log = open_log(task.db_path, task.sensor_root)
+    own = log.frames_of_scene(task.scene_token)
+    slots = output_slots(own, params.rate_hz, params.sweep_rate_hz)
+    frames = context_frames(log.frames, own, params.context_seconds, params.context_stride)
+    boxes = log.scene_boxes(frames)
     store = SpilledClouds(task.work_dir / "load")
-    with NuplanLog(task.db_path, task.sensor_root) as log:
-        T_ego_from_lidar = log.lidar.T_ego_from_lidar
-        sweeps = []
-        own = log.frames_of_scene(task.scene_token)
-        slots = output_slots(own, params.rate_hz, params.sweep_rate_hz)
-        for frame in context_frames(log.frames, own, params.context_seconds, params.context_stride):
-            pose = log.frame_pose(frame)
-            boxes_global = log.boxes(frame, "global")
-            boxes_ego = log.boxes(frame, "ego")
-            cloud, failure = None, ""
-            try:
-                cloud = store.add(compact(log.load_points(frame).transformed(T_ego_from_lidar, "ego")))
-            except NuplanFormatError as exc:
-                failure = str(exc)
-            sweeps.append(Sweep(frame.token, frame.index, frame.timestamp_us, pose, cloud, boxes_ego,
-                                boxes_global, frame.token in slots, failure, slots.get(frame.token, -1)))
-        try:
-            map_path = str(find_map(Path(task.maps_root), log.meta.map_name))
-        except MapError:
-            map_path = None
-        tracks = sorted(log.tracks)
-        scene = SceneData(
-            task=task, meta=log.meta, sweeps=sweeps, sensor_origin_ego=T_ego_from_lidar[:3, 3].copy(),
-            cameras=list(log.cameras), map_path=map_path,
-            instance_ids={token: i + 1 for i, token in enumerate(tracks)},
-            track_categories={token: log.tracks[token].category for token in tracks},
-        )
+    read = [read_sweep(log, frame, boxes, store, slots) for frame in frames]
+    sweeps = [sweep for sweep, _ in read]
+    failure = scene_failure(task, log, frames, sweeps, [error for _, error in read])
+    if failure is not None:
+        raise failure
+    map_path, map_problem = usable_map(Path(task.maps_root), log.meta.map_name)
+    tracks = sorted(log.tracks)
+    scene = SceneData(
+        task=task, meta=log.meta, sweeps=sweeps, sensor_origin_ego=log.lidar.T_ego_from_lidar[:3, 3].copy(),
+        cameras=list(log.cameras), map_path=None if map_path is None else str(map_path),
+        instance_ids={token: i + 1 for i, token in enumerate(tracks)},
+        track_categories={token: log.tracks[token].category for token in tracks}, map_problem=map_problem,
+    )
     return {"scene": scene}
 
 
 def sources(task, params: LoadParams) -> list[Path]:
     """The files `run` reads for the task besides the log's DB: the point cloud blobs of the scene's sweeps and
     of its context sweeps, and the log's map file (or, without one, the maps folder it was looked for in)."""
-    with NuplanLog(task.db_path, task.sensor_root) as log:
-        frames = context_frames(log.frames, log.frames_of_scene(task.scene_token), params.context_seconds,
-                                params.context_stride)
-        blobs = []
-        for frame in frames:
-            try:
-                blobs.append(log.blob_path(frame))
-            except NuplanFormatError:  # a path that is never opened: its frame fails in run
-                continue
-        map_name = log.meta.map_name
+    log = open_log(task.db_path, task.sensor_root)
+    frames = context_frames(log.frames, log.frames_of_scene(task.scene_token), params.context_seconds,
+                            params.context_stride)
+    blobs = []
+    for frame in frames:
+        try:
+            blobs.append(log.blob_path(frame))
+        except NuplanFormatError:  # a path that is never opened: its frame fails in run
+            continue
+    map_name = log.meta.map_name
     try:
         map_file = find_map(Path(task.maps_root), map_name)
     except MapError:
