@@ -105,7 +105,7 @@ def paper_method_frame(artifacts: dict, token: str, position: int, layers) -> np
     """The paper's voxelization and labeling on the same surfaces: background and object mesh vertices
     (one midpoint subdivision; objects posed by their box and cropped to it) with a majority label per
     voxel, then whole-column map stamping of background voxels."""
-    from nuplan_occ.stages.voxelize import placed_objects
+    from nuplan_occ.voxel.placement import placed_objects
     from nuplan_occ.geometry import yaw_matrix
     from nuplan_occ.voxel.voxelize import in_box
 
@@ -117,8 +117,8 @@ def paper_method_frame(artifacts: dict, token: str, position: int, layers) -> np
     faces = [surface.faces]
     offset = len(surface.vertices)
     ok_position = {p: i for i, p in enumerate(scene.ok_indices())}
-    objects = placed_objects(scene, artifacts["object_boxes"][position], ok_position[position], artifacts["objects"],
-                             artifacts["object_surfaces"], {}, 2)  # the paper meshes objects: no carved solids
+    objects = placed_objects(scene.instance_ids, artifacts["object_boxes"][position], ok_position[position],
+                             artifacts["objects"], artifacts["object_surfaces"], {}, 2)  # the paper meshes objects: no carved solids
     for obj in objects:
         posed = obj.vertices @ yaw_matrix(obj.yaw).T + obj.center
         keep = in_box(posed, obj.center, obj.yaw, obj.size)

@@ -47,6 +47,8 @@ def load_labels() -> LabelMap:
 
 
 LABELS = load_labels()
+BOX_CATEGORIES = tuple(LABELS.box_category_to_id)
+"""The box categories of the logs (labels.json), in label-map order."""
 EMPTY, OTHER = 0, 1
 VEHICLE, BICYCLE, PEDESTRIAN, TRAFFIC_CONE, BARRIER, CZONE_SIGN, GENERIC_OBJECT = 2, 3, 4, 5, 6, 7, 8
 ROAD, OTHER_GROUND, ROAD_LINE = 12, 13, 14

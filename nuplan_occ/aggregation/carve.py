@@ -10,12 +10,14 @@ is closed by construction, so a voxelizer fills it solid where the surface itsel
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from nuplan_occ.points import PointInputError
 from nuplan_occ.aggregation.box_cull import segments_near_box
+from nuplan_occ.io.types import Boxes
 
 
 @dataclass(frozen=True)
@@ -78,6 +80,25 @@ def segments_through_box(starts: np.ndarray, ends: np.ndarray, center: np.ndarra
 
 CULL_GROW_M = 1e-6
 """segments_through_box decides exactly only the segments crossing the box grown by this (box_cull)."""
+
+
+def rays_through_boxes(backgrounds: Sequence[np.ndarray], boxes: Sequence[Boxes], sensor_origin_ego: np.ndarray,
+                       tracks: set[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Track -> (starts (K, 3), ends (K, 3)) in its box frame (m): the rays sensor_origin_ego -> return of every
+    sweep's background (backgrounds[i] (N_i, 3), ego frame; read only for a sweep boxing one of them) that cross
+    the track's box in that sweep (boxes[i], Boxes of the same sweep), for the tracks in `tracks`; a track boxed
+    in some sweep gets an entry (maybe empty), the others none."""
+    through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for i, sweep_boxes in enumerate(boxes):
+        listed = [k for k, track in enumerate(sweep_boxes.track_tokens) if track in tracks]
+        if not listed:
+            continue
+        points = backgrounds[i]
+        origins = np.broadcast_to(sensor_origin_ego, points.shape)
+        for k in listed:
+            through.setdefault(sweep_boxes.track_tokens[k], []).append(segments_through_box(
+                origins, points, sweep_boxes.centers[k], float(sweep_boxes.yaws[k]), sweep_boxes.sizes[k]))
+    return {track: (np.vstack([r[0] for r in rays]), np.vstack([r[1] for r in rays])) for track, rays in through.items()}
 
 
 def carve_object_solid(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float = 0.1,
@@ -162,3 +183,16 @@ def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np
     held = np.zeros(len(inside), dtype=bool)
     held[inside] = np.isin(cells, lattice_cells(points_box, size, edge, counts)[1])
     return held
+
+
+def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float,
+                         through: tuple[np.ndarray, np.ndarray] | None, corners: bool) -> SolidSamples:
+    """An object's carved solid (`carve_object_solid` of its points_box (N, 3) seen from origins_box (N, 3), box
+    of `size` (3,), cells of edge <= resolution, more carving rays `through`; all box frame, m) as samples:
+    the solid cells' centres, or with `corners` the 8 points near each cell's corners (`cell_corner_points`,
+    so the voxelizer marks every voxel a cell overlaps); each sample observed when its cell holds a point."""
+    cells = carve_object_solid(points_box, origins_box, size, resolution=resolution, through=through)
+    observed = cells_holding_points(cells, points_box, size, resolution)
+    if corners:
+        return SolidSamples(cell_corner_points(cells, size, resolution), np.repeat(observed, 8))
+    return SolidSamples(cells, observed)

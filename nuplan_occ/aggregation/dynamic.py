@@ -17,14 +17,15 @@ looked up in each sweep's grid by a compiled loop (nuplan_occ.voxel.frame_lookup
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numba
 import numpy as np
 
 from nuplan_occ.points import PointInputError
-from nuplan_occ.geometry import invert_transform
+from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.points.voxel_reduce import KeySet, voxel_keys
 from nuplan_occ.voxel.frame_lookup import moved_voxel
 from nuplan_occ.rays.traversal import grid_args
 
@@ -143,3 +144,24 @@ def seen_through(
                      *grid_args(grid), free_bits, np.packbits(blocked.reshape(-1)), free, near_returns)
     remove[candidates[(free >= min_votes) & (free > occupied_ratio * near_returns)]] = True
     return remove
+
+
+MOVER_CELL_M = 0.05
+"""Cell of the unboxed-mover lookup (`movers_by_frame`) when the aggregate is not downsampled (m)."""
+
+
+def movers_by_frame(points_scene: np.ndarray, dynamic: np.ndarray, frame_clouds: Iterable[tuple[int, np.ndarray]],
+                    T_scene_from_ego: dict[int, np.ndarray], voxel_m: float) -> dict[int, np.ndarray]:
+    """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_clouds:
+    (position, points in its ego frame), placed by T_scene_from_ego) in a downsampling cell of voxel_m (m)
+    whose kept aggregate point (points_scene (M, 3), scene frame) was removed as dynamic (`dynamic` (M,) bool,
+    `seen_through`): the sweep's unboxed movers, voxelized in that frame only (nuplan_occ.voxel.movers). The
+    cell decides rather than the kept point itself, since a cell keeps the earliest frame's point and a mover
+    covers cells it had crossed before. One sweep is moved into the scene frame at a time."""
+    flagged = KeySet()
+    flagged.new(voxel_keys(points_scene[dynamic], voxel_m))
+    movers = {}
+    for position, cloud in frame_clouds:
+        points = transform_points(T_scene_from_ego[position], cloud)
+        movers[position] = points[flagged.holds(voxel_keys(points, voxel_m))].astype(np.float32)
+    return movers

@@ -150,3 +150,16 @@ def outside_boxes(points: np.ndarray, boxes: Boxes, pad_m: float, ground_keep_m:
                     centers=np.asarray(boxes.centers, dtype=np.float64) + [0.0, 0.0, (pad_m + ground_keep_m) / 2.0],
                     sizes=sizes + [2.0 * pad_m, 2.0 * pad_m, pad_m - ground_keep_m])
     return points_in_boxes(points, grown) < 0
+
+
+def cleared_background(cloud: np.ndarray, boxes: Boxes | None, max_range_m: float, clearance_m: float,
+                       ground_keep_m: float) -> np.ndarray:
+    """The points of one sweep's background cloud (N, 3), ego frame, m, within max_range_m of its ego (x-y
+    distance; 0: no limit) and outside its objects' `boxes` (same sweep, ego frame) grown by clearance_m
+    sideways and up from ground_keep_m above their bottom (`outside_boxes`; clearance_m < 0: none removed,
+    and boxes may be None)."""
+    if max_range_m > 0:
+        cloud = cloud[np.hypot(cloud[:, 0], cloud[:, 1]) <= max_range_m]
+    if clearance_m < 0:
+        return cloud
+    return cloud[outside_boxes(cloud, boxes, clearance_m, ground_keep_m)]

@@ -1,13 +1,17 @@
-"""Per-frame manifest columns computed from poses and boxes: filter columns for the spatial/temporal
-subsets and quality (QA) figures. numpy, and a numba kernel for the point coverage's neighbourhood test."""
+"""Per-frame manifest columns computed from poses, boxes and the scene's map alignment: filter columns for the
+spatial/temporal subsets and quality (QA) figures. numpy, and a numba kernel for the point coverage's
+neighbourhood test."""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
 
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import Boxes
+from nuplan_occ.map_labels.map_align import MapAlignment
+from nuplan_occ.registration.register import rotation_angle_deg
 from nuplan_occ.voxel.frame_lookup import point_voxels
 
 MOVING_SPEED_MPS = 0.5
@@ -30,6 +34,34 @@ def agent_speed_columns(boxes: Boxes) -> dict[str, float | int]:
     return {
         "max_agent_speed": float(speeds.max()) if len(speeds) else 0.0,
         "n_moving_agents": int((speeds > MOVING_SPEED_MPS).sum()),
+    }
+
+
+def frame_columns(scene, position: int, registration, speeds: np.ndarray, outliers: int, map_status: str,
+                  alignment: MapAlignment | None) -> dict:
+    """The columns of the frame at `position` of `scene` (SceneData) known before its grids: output_index (see
+    `nuplan_occ.storage.clips`), filter columns (ego_speed from `speeds` (F,) m/s, `agent_speed_columns`) and
+    QA figures: the refined pose's correction of the logged one (registration: the register stage's
+    Registration), the sweep's stored points, `outliers` (points the outlier test removed), the map's status
+    and the scene's map alignment (qa_map_*: NaN, or 0 points, without one)."""
+    sweep = scene.sweeps[position]
+    correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
+    return {
+        "output_index": int(sweep.output_index),
+        "ego_speed": float(speeds[position]),
+        **agent_speed_columns(sweep.boxes_global),
+        "qa_pose_correction_m": float(np.linalg.norm(correction[:3, 3])),
+        "qa_pose_correction_deg": rotation_angle_deg(correction[:3, :3]),
+        "qa_pose_accepted": bool(registration.accepted[position]),
+        "qa_pose_fitness": float(registration.fitness[position]),
+        "qa_points": len(sweep.stored_cloud) if sweep.has_cloud else 0,
+        "qa_outliers_removed": int(outliers),
+        "qa_map_status": map_status,
+        "qa_map_aligned": bool(alignment is not None and alignment.applied),
+        "qa_map_offset_m": float(np.hypot(alignment.dx, alignment.dy)) if alignment is not None else float("nan"),
+        "qa_map_yaw_deg": float(np.degrees(alignment.dyaw)) if alignment is not None else float("nan"),
+        "qa_map_paint_points": int(alignment.n_points) if alignment is not None else 0,
+        "qa_map_paint_rms_m": float(alignment.rms_after) if alignment is not None else float("nan"),
     }
 
 

@@ -34,6 +34,12 @@ class Surface:
         """True when the surface has triangles."""
         return len(self.faces) > 0
 
+    def with_triangles(self, vertices: np.ndarray, faces: np.ndarray, **info) -> "Surface":
+        """This surface with the mesh (vertices (V', 3), faces (F', 3) into them, same frame) added, and `info`
+        added to its info."""
+        return Surface(np.vstack([self.vertices, vertices]), np.vstack([self.faces, faces + len(self.vertices)]),
+                       self.frame, {**self.info, **info})
+
     def sample_points(self, spacing: float) -> np.ndarray:
         """Points (K, 3) in `frame` metres on the triangles, at most `spacing` apart along every
         triangle (a barycentric lattice per triangle fine enough for its longest edge).

@@ -1,162 +1,75 @@
-"""Stage 5, aggregate (FBSA): the scene's background in one scene-local frame with the refined poses,
-cropped to the output frames' grids plus a margin, with dynamic points removed by free-space evidence
-(points that at least `dynamic_min_votes` sweeps' rays passed through, see nuplan_occ.aggregation.dynamic);
-each track's points (from the track stage: taken inside its corrected boxes, in its corrected box
-frame) accumulated (rigid classes over the whole scene, pedestrians over a short window around each frame). Per-point sensor origins are kept for normal orientation.
-For space carving, the background rays of each frame that cross the box of a rigid track of `through_categories`
-are kept in that box's frame (they show where the object is not).
+"""aggregate: the scene's background in one scene frame, placed by the refined poses, and each track's points
+in its box frame, accumulated over the scene.
 
-The outlier test the filter stage left to the aggregate (`aggregate_outliers`, long scenes) runs on the
-downsampled aggregate, before the dynamic test.
+Background: each sweep's background within `max_range_m` of its ego, without the points near its objects'
+corrected boxes (`object_clearance_m`), cropped to the output frames' grids plus `crop_margin_m` and thinned
+to one point per `voxel_downsample_m` cube; the outlier test the filter stage left to the aggregate (long
+scenes) runs on it, then the points that other sweeps' rays saw through are removed as dynamic
+(nuplan_occ.aggregation.dynamic). Objects: rigid categories accumulate over the whole scene, the others keep
+their frame ids for a window around each frame. For carving, the background rays of each sweep that cross
+the box of a rigid track of `through_categories` are kept in that box's frame (they show where the object
+is not).
 
-Inputs: `scene`, `background` (of the sweeps at `background_positions`), `aggregate_outliers`, `registration`, `object_boxes`,
-`object_points` (of every loaded sweep), `observations` and `observation_bits` (the lidar_rays stage's
-observation grids of the output frames, the dynamic test's evidence from those sweeps).
-Outputs: `background_aggregate` (BackgroundAggregate, scene frame, its points in ascending scene x, so a
-frame reads only the slice within its grid's reach), `objects` (track -> ObjectAggregate),
-`object_through_rays` (rigid track of `through_categories` -> (starts (K, 3), ends (K, 3)), box frame, m), `frame_movers` (output
-sweep position -> (n, 3) float32, scene frame: the sweep's own background points where the aggregate
-removed points as dynamic), `aggregate_outliers_removed` (sweep position -> the aggregate points of that
-sweep the outlier test removed; empty when the filter stage filtered the sweeps).
+Inputs: `scene`, `background` (of the sweeps at `background_positions`), `aggregate_outliers`,
+`registration`, `object_boxes`, `object_points` (of every loaded sweep), `observations` and
+`observation_bits` (the lidar_rays stage's observation grids of the output frames, the dynamic test's
+evidence from those sweeps; other evidence sweeps are cast here).
+Outputs: `background_aggregate` (BackgroundAggregate, scene frame, m, its points in ascending scene x, so a
+frame reads only the slice within its grid's reach), `objects` (track -> ObjectAggregate, box frame),
+`object_through_rays` (rigid track of `through_categories` -> (starts (K, 3), ends (K, 3)), box frame, m),
+`frame_movers` (output sweep position -> (n, 3) float32, scene frame: the sweep's own background points
+where the aggregate removed points as dynamic), `aggregate_outliers_removed` (sweep position -> the
+aggregate points of that sweep the outlier test removed; empty when the filter stage filtered the sweeps).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.aggregation.aggregate import BackgroundAggregate, aggregate_background, aggregate_objects, without_outliers
-from nuplan_occ.aggregation.carve import segments_through_box
-from nuplan_occ.aggregation.dynamic import seen_through
-from nuplan_occ.aggregation.split import outside_boxes
-from nuplan_occ.points.voxel_reduce import KeySet, voxel_keys
-from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.aggregation.aggregate import aggregate_background, aggregate_objects, without_outliers
+from nuplan_occ.aggregation.carve import rays_through_boxes
+from nuplan_occ.aggregation.dynamic import MOVER_CELL_M, movers_by_frame, seen_through
+from nuplan_occ.aggregation.split import cleared_background
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
+from nuplan_occ.labels import BOX_CATEGORIES
+from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.sequences import MappedSequence
+from nuplan_occ.rays.observations import split_observation_bits
 from nuplan_occ.rays.visibility import lidar_observation_bits
-from nuplan_occ.stages.visibility import RayObservations, split_observation_bits
+from nuplan_occ.sequences import MappedSequence
 
 
 @dataclass(frozen=True)
 class AggregateParams:
-    """voxel_downsample_m: thin the background aggregate to one point per cube of this edge (0 = keep all).
-    crop_margin_m: keep only background points within this margin of the grid of at least one output frame
-    (x, y, z box of DEFAULT_GRID in the frame's refined ego frame); negative = keep all. Points beyond every
-    output grid only cost reconstruction time; the margin gives the solver context at the grid's edges.
-    rigid_categories: classes aggregated over the whole scene; others use a window of frames.
-    remove_dynamic: drop background points that other sweeps' rays saw through (moving objects outside their
-    boxes, unboxed movers); dynamic_min_votes, dynamic_ground_clearance_m, dynamic_protect_dilation,
-    dynamic_occupied_ratio: see nuplan_occ.aggregation.dynamic.seen_through (ratio 0.5 chosen by measurement on the
-    bench: 0 removes more trail but also 1-3 % of static points on faces seen at grazing angles);
-    dynamic_sweep_stride: use every n-th loaded sweep's rays as evidence (one ray traversal per used sweep);
-    dynamic_max_sweeps: at most this many of them, spread evenly over the scene (`SceneData.spread_positions`;
-    0 = all): a longer scene's points are seen by more sweeps than the vote needs (bench/report-scale.md notes).
-    object_clearance_m: background points inside a corrected box grown by this much (sideways and up) are
-    dropped (negative: keep them): an object's points that its logged box missed would otherwise become
-    background, and a ghost trail where the object moves; ground_keep_m: the grown box starts this high
-    above the box's bottom, so the ground around objects stays (0.03 m measured against 0.1 m on the bench:
-    trail voxels 531 -> 484, nothing else changed).
-    max_range_m: background points farther than this from their own sweep's ego (x-y distance, m) are not
-    aggregated (0: no limit). Logs box agents only up to a range (the synthetic logs 80 m, nuPlan's annotation
-    range is not documented), so beyond it moving vehicles have no box and their points would enter the
-    background as a static ghost; the sweeps' rays cannot vote them out there either, as each sweep votes only
-    inside its own grid. A point inside an output frame's grid is within 70.7 m of that frame's ego, so the
-    scenery of every grid is still seen from the nearer sweeps (bench/report-scale.md notes: trails at 20 s).
-    through_categories: rigid categories whose tracks get `object_through_rays`, the background rays that cross
-    their boxes; the reconstruct stage carves these objects' solids with them too. Those rays start at the
-    merged LiDAR frame's origin, the only sensor pose nuPlan stores, while the rig has five LiDARs mounted up
-    to ~1 m away from it (synthetic rig: roof, A-pillars, front and back bumpers), so a ray that in truth
-    passed over, beside or under an object (between its wheels) is redrawn through it; its error at the
-    object is the origin's error scaled by the share of the ray still ahead of it, large for returns far
-    beyond the object. The object's own rays end on its surface, where that error vanishes, so they keep
-    carving. Measured on the 20 s scale bench (pooled IoU with / without them for every carved class):
-    vehicle 0.642 / 0.655, barrier 0.614 / 0.676, generic object 0.710 / 0.805, czone sign 0.686 / 0.541.
-    Czone signs keep them: their panel stands on thin legs, and only rays through the box show the empty
-    space under the panel. Rays are gathered only for these categories (the other rigid tracks' were never
-    used and took a tenth of the stage)."""
-
-    voxel_downsample_m: float = 0.05
-    crop_margin_m: float = 5.0
-    rigid_categories: tuple[str, ...] = ("vehicle", "bicycle", "traffic_cone", "barrier", "czone_sign", "generic_object")
-    remove_dynamic: bool = True
-    dynamic_min_votes: int = 2
-    dynamic_ground_clearance_m: float = 0.3
-    dynamic_protect_dilation: int = 1
-    dynamic_occupied_ratio: float = 0.5
-    dynamic_sweep_stride: int = 2
-    dynamic_max_sweeps: int = 50
-    object_clearance_m: float = 0.2
-    ground_keep_m: float = 0.03
-    max_range_m: float = 75.0
-    through_categories: tuple[str, ...] = ("czone_sign",)
-
-
-MOVER_CELL_M = 0.05
-"""Cell of the unboxed-mover lookup when the aggregate is not downsampled (m)."""
-
-
-def movers_by_frame(background: BackgroundAggregate, dynamic: np.ndarray,
-                    frame_clouds: Iterable[tuple[int, np.ndarray]], T_scene_from_ego: dict[int, np.ndarray],
-                    voxel_m: float) -> dict[int, np.ndarray]:
-    """Output sweep position -> (n, 3) float32 points, scene frame: the points of that sweep (frame_clouds:
-    (position, points in its ego frame), placed by T_scene_from_ego) in a downsampling cell of voxel_m whose
-    kept point was removed as dynamic: the sweep's unboxed movers, voxelized in that frame only
-    (nuplan_occ.voxel.movers). The cell decides rather than the kept point itself, since a cell keeps the
-    earliest frame's point and a mover covers cells it had crossed before. One sweep is moved into the
-    scene frame at a time."""
-    flagged = KeySet()
-    flagged.new(voxel_keys(background.points[dynamic], voxel_m))
-    movers = {}
-    for position, cloud in frame_clouds:
-        points = transform_points(T_scene_from_ego[position], cloud)
-        movers[position] = points[flagged.holds(voxel_keys(points, voxel_m))].astype(np.float32)
-    return movers
-
-
-def rays_through_boxes(backgrounds: Sequence, boxes: Sequence, sensor_origin_ego: np.ndarray,
-                       tracks: set[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Track -> (starts (K, 3), ends (K, 3)) in its box frame (m): the rays sensor_origin_ego -> return of every
-    sweep's background (backgrounds[i] (N_i, 3), ego frame; read only for a sweep boxing one of them) that cross
-    the track's box in that sweep (boxes[i], Boxes of the same sweep), for the tracks in `tracks`; a track boxed
-    in some sweep gets an entry (maybe empty), the others none."""
-    through: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for i, sweep_boxes in enumerate(boxes):
-        listed = [k for k, track in enumerate(sweep_boxes.track_tokens) if track in tracks]
-        if not listed:
-            continue
-        points = backgrounds[i]
-        origins = np.broadcast_to(sensor_origin_ego, points.shape)
-        for k in listed:
-            through.setdefault(sweep_boxes.track_tokens[k], []).append(segments_through_box(
-                origins, points, sweep_boxes.centers[k], float(sweep_boxes.yaws[k]), sweep_boxes.sizes[k]))
-    return {track: (np.vstack([r[0] for r in rays]), np.vstack([r[1] for r in rays])) for track, rays in through.items()}
-
-
-def cleared_background(background: Sequence, object_boxes: Sequence, position: int,
-                       params: AggregateParams) -> np.ndarray:
-    """The background (ego frame) of the sweep at `position` within max_range_m of its ego and without the
-    points near its objects' corrected boxes (object_clearance_m < 0: as it is). Made when asked for, so that a scene never holds a second copy
-    of every sweep's background (an output sweep is cleared twice: for the aggregate and for its movers; the
-    compiled box test makes that cheaper than holding the copies)."""
-    cloud = background[position]
-    if params.max_range_m > 0:
-        cloud = cloud[np.hypot(cloud[:, 0], cloud[:, 1]) <= params.max_range_m]
-    if params.object_clearance_m < 0:
-        return cloud
-    return cloud[outside_boxes(cloud, object_boxes[position], params.object_clearance_m, params.ground_keep_m)]
-
-
-def sweep_observation(scene, position: int, observations: RayObservations, observation_bits: Sequence
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """The `lidar_observation_bits` of the sweep at `position`: the lidar_rays
-    stage's when it is an output frame there, else cast from its returns."""
-    token = scene.sweeps[position].token
-    if token in observations.tokens:
-        return split_observation_bits(observation_bits[observations.row(token)])
-    return lidar_observation_bits(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
+    voxel_downsample_m: float = param(0.05, "thin the background aggregate to one point per cube of this edge "
+                                      "(0: keep all)", unit="m", low=0.0)
+    crop_margin_m: float = param(5.0, "keep the background points within this margin of at least one output "
+                                 "frame's grid (negative: keep all)", unit="m")
+    rigid_categories: tuple[str, ...] = param(
+        ("vehicle", "bicycle", "traffic_cone", "barrier", "czone_sign", "generic_object"),
+        "categories aggregated over the whole scene; the others over a window of sweeps", choices=BOX_CATEGORIES)
+    remove_dynamic: bool = param(True, "drop background points that other sweeps' rays saw through (movers)")
+    dynamic_min_votes: int = param(2, "sweeps that must have seen through a point to remove it", low=1)
+    dynamic_ground_clearance_m: float = param(0.3, "points this close above the local ground are never removed "
+                                              "as dynamic", unit="m", low=0.0)
+    dynamic_protect_dilation: int = param(1, "voxels around a sweep's returns in which that sweep does not vote",
+                                          low=0)
+    dynamic_occupied_ratio: float = param(0.5, "a point's votes must exceed this times the sweeps with a return "
+                                          "in or next to its voxel", low=0.0)
+    dynamic_sweep_stride: int = param(2, "every n-th loaded sweep's rays are dynamic evidence", low=1)
+    dynamic_max_sweeps: int = param(50, "at most this many evidence sweeps, spread evenly over the scene (0: all)",
+                                    low=0)
+    object_clearance_m: float = param(0.2, "drop background points inside a corrected box grown by this, "
+                                      "sideways and up (negative: keep them)", unit="m")
+    ground_keep_m: float = param(0.03, "the grown box starts this high above the box's bottom (the ground around "
+                                 "objects stays)", unit="m", low=0.0)
+    max_range_m: float = param(75.0, "background points farther than this from their sweep's ego (x-y) are not "
+                               "aggregated (0: no limit)", unit="m", low=0.0)
+    through_categories: tuple[str, ...] = param(("czone_sign",), "rigid categories whose tracks keep the background "
+                                                "rays crossing their boxes, for carving", choices=BOX_CATEGORIES)
 
 
 def run(inputs: dict, params: AggregateParams) -> dict:
@@ -168,11 +81,16 @@ def run(inputs: dict, params: AggregateParams) -> dict:
     crop = None
     if params.crop_margin_m >= 0 and outputs:
         crop = (poses[outputs], DEFAULT_GRID.lower - params.crop_margin_m, DEFAULT_GRID.upper + params.crop_margin_m)
-    def cleared(position: int) -> np.ndarray:
-        return cleared_background(inputs["background"], inputs["object_boxes"], position, params)
 
-    def observation_at(position: int) -> np.ndarray:
-        return sweep_observation(scene, position, inputs["observations"], inputs["observation_bits"])
+    def cleared(position: int) -> np.ndarray:  # when asked for: no second copy of every sweep's background
+        return cleared_background(inputs["background"][position], inputs["object_boxes"][position],
+                                  params.max_range_m, params.object_clearance_m, params.ground_keep_m)
+
+    def observation_at(position: int) -> tuple[np.ndarray, np.ndarray]:  # the lidar_rays stage's, else cast here
+        token, observations = scene.sweeps[position].token, inputs["observations"]
+        if token in observations.tokens:
+            return split_observation_bits(inputs["observation_bits"][observations.row(token)])
+        return lidar_observation_bits(scene.sweeps[position].xyz, scene.sensor_origin_ego, DEFAULT_GRID)
 
     clouds = MappedSequence(with_background, cleared)
     background = aggregate_background(
@@ -197,7 +115,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
                                protect_dilation=params.dynamic_protect_dilation,
                                occupied_ratio=params.dynamic_occupied_ratio)
         scene_from_global = invert_transform(background.T_global_from_scene)
-        frame_movers = movers_by_frame(background, dynamic, ((p, cleared(p)) for p in outputs),
+        frame_movers = movers_by_frame(background.points, dynamic, ((p, cleared(p)) for p in outputs),
                                        {p: scene_from_global @ poses[p] for p in outputs},
                                        params.voxel_downsample_m or MOVER_CELL_M)
         background = background.subset(~dynamic)
@@ -214,14 +132,7 @@ def run(inputs: dict, params: AggregateParams) -> dict:
 
 
 STAGE = Stage("aggregate", inputs=("scene", "background", "background_positions", "aggregate_outliers", "registration",
-                            "object_boxes", "object_points", "observations", "observation_bits"),
+                                   "object_boxes", "object_points", "observations", "observation_bits"),
               outputs=("background_aggregate", "objects", "object_through_rays", "frame_movers",
                        "aggregate_outliers_removed"),
-              params_type=AggregateParams,
-              run=run,
-              code=("nuplan_occ.aggregation.aggregate", "nuplan_occ.points.box_kernels", "nuplan_occ.points.outliers",
-                    "nuplan_occ.points.knn", "nuplan_occ.aggregation.carve",
-                    "nuplan_occ.aggregation.box_cull", "nuplan_occ.aggregation.dynamic", "nuplan_occ.aggregation.split",
-                    "nuplan_occ.points.voxel_reduce",
-                    "nuplan_occ.rays.visibility", "nuplan_occ.rays.traversal", "nuplan_occ.voxel.frame_lookup"),
-              doc=__doc__ or "")
+              params_type=AggregateParams, run=run)

@@ -1,15 +1,15 @@
-"""Stage 10, write (the last frame stage): the frame's record (semantics, masks, instance, flow; identity,
-pose, filter columns, QA figures, status), which the runner encodes into the scene's tar shard at once
-(published atomically when the scene's last frame is in; the runner commits the rows). A frame whose sweep
-failed, or whose earlier frame stage failed, gets a record with status "failed" and the reason.
+"""write (the last frame stage): the frame's record (its arrays `members`, identity, pose, filter columns, QA
+figures and status), which the runner encodes into the scene's tar shard at once (published atomically when
+the scene's last frame is in; the runner commits the manifest rows). A frame whose sweep failed, or whose
+earlier frame stage failed, gets a record with status "failed" and the reason.
 
 Inputs: `scene`, `registration`, `outliers_removed` and `aggregate_outliers_removed` (qa_outliers_removed is
-their sum: the sweep's points the outlier test removed, on its own or in the aggregate), `map_status`, `map_alignment`, `object_boxes`,
-`object_points` (for qa_boxes_*, `nuplan_occ.voxel.box_labels`); prepared once per scene: `ego_speeds`;
-frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`. Frame output: `record` (FrameRecord). A
-row's `ego_to_global` is the refined pose corrected by the scene's map alignment: the pose the frame's labels
-were rasterized with, so the map drawn with it lands where the grid says. Instance ids and flow are 0 in the
-voxels the visibility stage emptied.
+their sum: the sweep's points the outlier test removed, on its own or in the aggregate), `map_status`,
+`map_alignment`, `object_boxes`, `object_points` (for qa_boxes_*, nuplan_occ.voxel.box_labels); prepared once
+per scene: `ego_speeds` (F,) m/s; frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`.
+Frame output: `record` (FrameRecord). A row's `ego_to_global` is the refined pose corrected by the scene's
+map alignment: the pose the frame's labels were rasterized with, so the map drawn with it lands where the
+grid says. Instance ids and flow are 0 in the voxels the visibility stage emptied.
 """
 
 from __future__ import annotations
@@ -18,46 +18,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.geometry import invert_transform
-from nuplan_occ.pipeline.frame_columns import agent_speed_columns, ego_speeds, point_coverage
+from nuplan_occ.pipeline.frame_columns import ego_speeds, frame_columns, point_coverage
+from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.storage import FrameRecord
+from nuplan_occ.storage import MEMBERS, FrameRecord
 from nuplan_occ.voxel.box_labels import box_label_columns
 from nuplan_occ.voxel.compose import zero_emptied_objects
-from nuplan_occ.map_labels.map_align import MapAlignment
 
 
 @dataclass(frozen=True)
 class WriteParams:
-    """members: which per-frame arrays go into the shard."""
-
-    members: tuple[str, ...] = ("semantics", "mask_lidar", "mask_camera", "instance", "flow")
-
-
-def frame_columns(scene, position: int, registration, speeds, outliers: int, map_status: str,
-                  alignment: MapAlignment | None) -> dict:
-    """output_index (see `nuplan_occ.storage.clips`), filter columns and QA figures of one frame (qa_map_*: the
-    scene's map alignment, NaN without)."""
-    sweep = scene.sweeps[position]
-    correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
-    columns = {
-        "output_index": int(sweep.output_index),
-        "ego_speed": float(speeds[position]),
-        **agent_speed_columns(sweep.boxes_global),
-        "qa_pose_correction_m": float(np.linalg.norm(correction[:3, 3])),
-        "qa_pose_correction_deg": float(np.degrees(np.arccos(np.clip((np.trace(correction[:3, :3]) - 1) / 2, -1, 1)))),
-        "qa_pose_accepted": bool(registration.accepted[position]),
-        "qa_pose_fitness": float(registration.fitness[position]),
-        "qa_points": len(sweep.stored_cloud) if sweep.has_cloud else 0,
-        "qa_outliers_removed": int(outliers),
-        "qa_map_status": map_status,
-        "qa_map_aligned": bool(alignment is not None and alignment.applied),
-        "qa_map_offset_m": float(np.hypot(alignment.dx, alignment.dy)) if alignment is not None else float("nan"),
-        "qa_map_yaw_deg": float(np.degrees(alignment.dyaw)) if alignment is not None else float("nan"),
-        "qa_map_paint_points": int(alignment.n_points) if alignment is not None else 0,
-        "qa_map_paint_rms_m": float(alignment.rms_after) if alignment is not None else float("nan"),
-    }
-    return columns
+    members: tuple[str, ...] = param(("semantics", "mask_lidar", "mask_camera", "instance", "flow"),
+                                     "the per-frame arrays written into the shard", choices=tuple(MEMBERS))
 
 
 def prepare(inputs: dict, params: WriteParams) -> dict:
@@ -98,8 +70,7 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     return {"record": record}
 
 
-STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "aggregate_outliers_removed", "map_status", "map_alignment",
-                                "object_boxes", "object_points", "grids", "final_semantics", "masks", "free_cleared"),
-              outputs=("record",), params_type=WriteParams, run=run,
-              code=("nuplan_occ.storage", "nuplan_occ.voxel.box_labels"), doc=__doc__ or "", per_frame=True,
-              prepare=prepare)
+STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "aggregate_outliers_removed", "map_status",
+                               "map_alignment", "object_boxes", "object_points", "grids", "final_semantics", "masks",
+                               "free_cleared"),
+              outputs=("record",), params_type=WriteParams, run=run, per_frame=True, prepare=prepare, kept=True)

@@ -36,6 +36,7 @@ import numpy as np
 from nuplan_occ.points.voxel_reduce import voxel_keys
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
+from nuplan_occ.voxel.compose import FrameGrids
 from nuplan_occ.voxel.ground import ground_height_index
 from nuplan_occ.voxel.voxel_clusters import chebyshev_clusters
 
@@ -135,3 +136,25 @@ def recurring_points(points: np.ndarray, others: list[np.ndarray], cell_m: float
     if not others:
         return np.zeros(len(points), dtype=bool)
     return np.isin(voxel_keys(points, cell_m), np.concatenate([voxel_keys(o, cell_m) for o in others]))
+
+
+def neighbour_movers(frame_movers: dict[int, np.ndarray], position: int, frames: int) -> list[np.ndarray]:
+    """The flagged points (scene frame) of the output frames `frames` before and after the one at `position`
+    (frame_movers: output position -> (N, 3) scene-frame points): the `others` of `recurring_points`; []
+    unless the scene has both."""
+    positions = sorted(frame_movers)
+    n = positions.index(position)
+    if n - frames < 0 or n + frames >= len(positions):
+        return []
+    return [frame_movers[positions[n - frames]], frame_movers[positions[n + frames]]]
+
+
+def paint_empty(grids: FrameGrids, movers: MoverVoxels) -> int:
+    """Give the empty voxels among `movers`, and their over_ground voxels that hold background, their class
+    (instance and flow stay 0; a painted voxel is no longer background); returns how many were painted."""
+    i, j, k = movers.indices.T
+    paint = (grids.semantics[i, j, k] == 0) | (movers.over_ground & grids.occupied_background[i, j, k])
+    i, j, k = i[paint], j[paint], k[paint]
+    grids.semantics[i, j, k] = movers.class_ids[paint]
+    grids.occupied_background[i, j, k] = False
+    return int(paint.sum())

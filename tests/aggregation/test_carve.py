@@ -159,3 +159,18 @@ def test_cells_holding_points_marks_exactly_the_observed_cells():
     assert held.sum() == 2
     for point in points[:2]:  # each inside point is in one of the two marked cells
         assert (np.abs(cells[held] - point).max(axis=1) <= edge.max() / 2 + 1e-9).sum() == 1
+
+
+def test_solid_samples_are_cell_centres_or_their_corners_with_the_observed_cells_marked():
+    from nuplan_occ.aggregation.carve import object_solid_samples
+
+    size = np.array([1.0, 1.0, 1.0])
+    point = np.array([[-0.43, 0.45, 0.45]])  # in the cell x [-0.5, -0.4], y, z [0.4, 0.5]; seen from far along +x
+    origin = np.array([[5.0, 0.45, 0.45]])
+    centres = object_solid_samples(point, origin, size, 0.1, None, corners=False)
+    corners = object_solid_samples(point, origin, size, 0.1, None, corners=True)
+    # the ray carves the 9 cells of its row in front of the point's cell (it stops 0.05 m short of the point)
+    assert len(centres.points) == 1000 - 9 and centres.observed.sum() == 1
+    np.testing.assert_allclose(centres.points[centres.observed], [[-0.45, 0.45, 0.45]])
+    assert corners.points.shape == (8 * len(centres.points), 3) and corners.observed.sum() == 8
+    np.testing.assert_allclose(np.abs(corners.points[corners.observed] - [-0.45, 0.45, 0.45]), 0.045)

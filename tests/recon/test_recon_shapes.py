@@ -160,3 +160,14 @@ def test_coarse_first_solve_keeps_shapes_signs_and_hole_filling():
     surface = reconstruct(pts[~hole], origins[~hole], params=params)
     grid = np.stack(np.meshgrid(np.linspace(0.3, 0.7, 5), np.linspace(0.3, 0.7, 5)), -1).reshape(-1, 2)
     assert cKDTree(surface.sample_points(0.05)).query(np.column_stack([grid, np.zeros(len(grid))]))[0].max() < 0.05
+
+
+def test_with_triangles_appends_a_mesh_and_its_info():
+    from nuplan_occ.recon.surface import Surface
+
+    triangle = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    surface = Surface(triangle, [[0, 1, 2]], "scene", {"method": "nksr"})
+    joined = surface.with_triangles(triangle + [0.0, 0.0, 1.0], np.array([[0, 2, 1]]), ground_fill_faces=1)
+    assert joined.frame == "scene" and joined.info == {"method": "nksr", "ground_fill_faces": 1}
+    np.testing.assert_array_equal(joined.faces, [[0, 1, 2], [3, 5, 4]])
+    np.testing.assert_array_equal(joined.vertices[3:], triangle + [0.0, 0.0, 1.0])

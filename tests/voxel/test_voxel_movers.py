@@ -95,7 +95,7 @@ def test_a_bicycle_reaches_down_to_its_ground_and_replaces_the_background_there(
     pedestrian seen from 0.3 m up gains nothing (not a bicycle). Painted into a frame whose ground layer is
     background, the wheel voxels replace it and stop being background."""
     from nuplan_occ.voxel.compose import FrameGrids
-    from nuplan_occ.stages.voxelize import paint_empty
+    from nuplan_occ.voxel.movers import paint_empty
 
     xs, zs = np.meshgrid(np.arange(11.2, 13.0, 0.1), np.arange(-0.6, 0.3, 0.1))
     frame = np.column_stack([xs.ravel(), np.full(xs.size, 3.05), zs.ravel()])  # its side, as a sweep sees it
@@ -121,3 +121,13 @@ def test_a_bicycle_reaches_down_to_its_ground_and_replaces_the_background_there(
     i, j, k = wheels.T
     assert np.all(grids.semantics[i, j, k] == BICYCLE) and not grids.occupied_background[i, j, k].any()
     assert grids.occupied_background.sum() == shape[0] * shape[1] - len(wheels)
+
+
+def test_neighbour_movers_are_the_frames_the_given_count_before_and_after() -> None:
+    from nuplan_occ.voxel.movers import neighbour_movers
+
+    frame_movers = {position: np.full((1, 3), float(position)) for position in (30, 10, 20, 40, 50)}
+    before, after = neighbour_movers(frame_movers, 30, 2)  # output frames in position order, not insertion order
+    assert before[0, 0] == 10.0 and after[0, 0] == 50.0
+    assert neighbour_movers(frame_movers, 20, 2) == []  # no frame two before it
+    assert neighbour_movers(frame_movers, 40, 1)[1][0, 0] == 50.0

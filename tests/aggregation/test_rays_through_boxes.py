@@ -1,9 +1,9 @@
-"""nuplan_occ.stages.aggregate: background rays crossing a box are kept, in its box frame, only for the listed tracks."""
+"""nuplan_occ.aggregation.carve.rays_through_boxes: background rays crossing a box are kept, in its box frame, only for the listed tracks."""
 
 import numpy as np
 
 from nuplan_occ.io.types import Boxes
-from nuplan_occ.stages.aggregate import rays_through_boxes
+from nuplan_occ.aggregation.carve import rays_through_boxes
 
 
 def boxes(tracks, centers, yaws):

@@ -1,12 +1,12 @@
-"""Box lattice of box-filled objects (voxelize stage)."""
+"""nuplan_occ.voxel.placement: the box lattice of box-filled objects."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from nuplan_occ.grid import GridSpec
+from nuplan_occ.voxel.placement import box_lattice_points
 from nuplan_occ.voxel.voxelize import mesh_voxel_indices
-from nuplan_occ.stages.voxelize import box_lattice_points
 
 
 def test_box_lattice_covers_the_box_faces_included():
