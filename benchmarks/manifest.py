@@ -203,7 +203,8 @@ def bench_work(work: Path, seconds: float, reuse: bool = False) -> dict[str, Any
 def measure_work(out: Path) -> dict[str, Any]:
     """Stage cache bytes per output frame of the published scenes of a `--keep-work all` build, the
     work folder per frame under each policy, and the dataset's own bytes per frame."""
-    from nuplan_occ.pipeline.publish import DEFAULT_KEPT_STAGES
+    from nuplan_occ.pipeline.publish import kept_stages
+    from nuplan_occ.stages import PIPELINE
     from nuplan_occ.storage import read_manifest
 
     table = read_manifest(str(out), ["log", "scene_name", "shard"])
@@ -216,7 +217,7 @@ def measure_work(out: Path) -> dict[str, Any]:
     shards = sum((out / "shards" / f"{key}.tar").stat().st_size for key in set(table["shard"].to_pylist()))
     dataset_bytes = shards + _tree_bytes(out / "manifest") + (out / "dataset.json").stat().st_size
     policies = {"all": sum(per_stage.values()),
-                "default": sum(v for k, v in per_stage.items() if k in DEFAULT_KEPT_STAGES), "none": 0}
+                "default": sum(v for k, v in per_stage.items() if k in kept_stages(PIPELINE)), "none": 0}
     return {"scenes": len(scenes), "frames": frames,
             "stage_bytes_per_frame": {k: v / frames for k, v in sorted(per_stage.items())},
             "work_bytes_per_frame": {k: v / frames for k, v in policies.items()},

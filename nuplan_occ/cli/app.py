@@ -15,14 +15,17 @@ app = CliApp("nuplan-occ", add_completion=False, no_args_is_help=True,
 console = Console(stderr=True)
 
 
-def _build_params(config: Optional[Path], set_options: List[str], rate_hz: float) -> dict:
+def _build_params(config: Optional[Path], set_options: List[str], rate_hz: Optional[float]) -> dict:
+    """The build's params: the stages' declared defaults, then the config file, then --rate-hz (only when
+    given, so a config file's [load] rate_hz stands otherwise), then --set; each value checked as it is read."""
     from nuplan_occ.pipeline.params import apply_overrides, default_params, load_config_file, parse_set_options
     from nuplan_occ.stages import PIPELINE
 
     params = default_params(PIPELINE)
     if config is not None:
         params = apply_overrides(params, load_config_file(config), str(config))
-    params = apply_overrides(params, {"load": {"rate_hz": rate_hz}}, "--rate-hz")
+    if rate_hz is not None:
+        params = apply_overrides(params, {"load": {"rate_hz": rate_hz}}, "--rate-hz")
     return apply_overrides(params, parse_set_options(set_options), "--set")
 
 
@@ -33,8 +36,9 @@ def build(
     split: str = typer.Option("mini", help="Split folder under nuplan-v1.1/splits ('' = every .db under the root)."),
     log: List[str] = typer.Option([], "--log", help="Only these logs (DB stems); repeatable."),
     maps_root: Optional[Path] = typer.Option(None, help="Maps root (default NUPLAN_MAPS_ROOT or DATA_ROOT/maps)."),
-    rate_hz: float = typer.Option(10.0, help="Output frame rate (sweeps are 20 Hz)."),
-    workers: int = typer.Option(1, help="Parallel scene workers."),
+    rate_hz: Optional[float] = typer.Option(None, help="Output frame rate in Hz (default: load.rate_hz, 10; "
+                                             "sweeps are 20 Hz)."),
+    workers: int = typer.Option(1, min=1, help="Parallel scene workers."),
     executor: str = typer.Option("local", help="local (process pool) or ray."),
     ray_address: Optional[str] = typer.Option(None, help="Existing Ray cluster; default starts a local Ray."),
     config: Optional[Path] = typer.Option(None, help="JSON/TOML file of {stage: {param: value}} overrides."),
@@ -79,6 +83,9 @@ def synth(
     scene_seconds: Optional[float] = typer.Option(None, help="Scene length (default: the preset's, >= 5 scenes "
                                                   "per log); = --seconds makes one scene span the log."),
     truth_rate: float = typer.Option(20.0, help="Truth frames per second (20 / n)."),
+    camera_rate: float = typer.Option(10.0, help="Camera images per second (20 / n; 0 = none)."),
+    camera_mask: bool = typer.Option(False, help="Truth mask_camera (exact at the cameras' resolution; ~1 s per "
+                                     "truth frame)."),
     preview: Optional[Path] = typer.Option(None, help="Write a PNG of one sweep over the truth grid."),
 ) -> None:
     """Write synthetic nuPlan logs from procedural worlds, with exact occupancy truth."""
@@ -86,7 +93,8 @@ def synth(
     from nuplan_occ.synth.preview import render_preview
 
     synthesize(out_root, logs=logs, seconds=seconds, seed=seed, preset=preset, progress=console.log,
-               scene_seconds=scene_seconds, truth_rate_hz=truth_rate)
+               scene_seconds=scene_seconds, truth_rate_hz=truth_rate, camera_rate_hz=camera_rate,
+               camera_mask=camera_mask)
     if preview is not None:
         render_preview(out_root, preview)
         console.print(f"preview written to {preview}")
@@ -109,7 +117,7 @@ def summary(
 def demo(
     out: Path = typer.Argument(Path("demo_out"), help="Folder for the synthetic data, the dataset and the picture."),
     seconds: float = typer.Option(4.0, help="Seconds of synthetic log."),
-    workers: int = typer.Option(2, help="Parallel scene workers."),
+    workers: int = typer.Option(2, min=1, help="Parallel scene workers."),
 ) -> None:
     """Synthesize a log, build it, print the summary, write a picture of one frame and the build report."""
     from nuplan_occ.pipeline.build import run_build
@@ -120,7 +128,7 @@ def demo(
     data_root = out / "data"
     if not (data_root / "nuplan-v1.1").exists():
         synthesize(data_root, logs=1, seconds=seconds, seed=0, preset="small", progress=console.log)
-    params = _build_params(None, [], 10.0)
+    params = _build_params(None, [], None)
     with BuildProgress(console) as progress:
         result = run_build(data_root, str(out / "dataset"), params, pipeline=PIPELINE, workers=workers,
                            on_plan=progress.on_plan, on_event=progress.on_event)

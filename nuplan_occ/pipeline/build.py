@@ -22,6 +22,7 @@ from nuplan_occ.io.maps import usable_map
 from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.pipeline.build_log import BuildLog
 from nuplan_occ.pipeline.executors import execute
+from nuplan_occ.pipeline.params import check_params
 from nuplan_occ.pipeline.runner import SceneResult
 from nuplan_occ.pipeline.scene import SceneTask, log_id_of
 
@@ -116,6 +117,10 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, pipeline: li
     `default_work_root`); keep_work: work-folder policy (see `pipeline.publish`); each run appends its
     scenes' stage times to the build log there (`nuplan_occ.pipeline.build_log`)."""
     started = time.perf_counter()
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    for section, value in params.items():
+        check_params(value, section)
     logs = logs_of_shard(resolve_logs(data_root, split=split, log_names=log_names, db_paths=db_paths),
                          num_shards, shard_index)
     maps = maps_root_for(data_root, maps_root)

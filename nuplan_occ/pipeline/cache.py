@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, Iterator
 
 from nuplan_occ.pipeline import array_codec
+from nuplan_occ.storage.errors import StorageWriteError
 
 CACHE_ZSTD_LEVEL = 3
 """zstd level of cache entries (bytes and seconds per level: the notes of bench/report-scale.md)."""
@@ -44,7 +45,8 @@ def stable_hash(*parts: Any) -> str:
 @contextmanager
 def atomic_file(path: Path) -> Iterator[BinaryIO]:
     """A file handle whose content appears at `path` only when the block ends without error (temp file
-    in the same folder, fsync, atomic rename); on error nothing is left behind."""
+    in the same folder, fsync, atomic rename); on error nothing is left behind, and an OSError (disk full,
+    quota) becomes a StorageWriteError naming `path`."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -53,8 +55,10 @@ def atomic_file(path: Path) -> Iterator[BinaryIO]:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and not isinstance(exc, StorageWriteError):
+            raise StorageWriteError.of(exc, str(path)) from exc
         raise
 
 

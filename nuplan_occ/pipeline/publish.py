@@ -3,16 +3,13 @@ the scene's manifest fragment right after its shard, then trim the scene's work 
 
 Work-folder policy (`--keep-work`), applied only after the scene is published:
     all      keep every stage's cache entry;
-    default  keep what makes a param change cheap and is small: registration poses (register),
-             corrected boxes and their points (track), surfaces and solids (reconstruct), and the
-             manifest rows (write, so a rerun is answered without work); drop the split and filtered
-             point clouds (split, filter), the aggregated clouds (aggregate), the LiDAR observations
-             (lidar_rays), the frames' background support (support) and the map alignment (label_map),
-             which are cheaper to recompute than to store (the frame stages themselves cache only the
-             scene's rows, under write);
+    default  keep the entries of the stages marked `kept` (`Stage.kept`): small entries that make a param
+             change cheap (poses, corrected boxes, surfaces, the manifest rows, so a rerun is answered
+             without work); drop the others (point clouds, aggregates, per-frame observations), which are
+             cheaper to recompute than to store;
     none     drop the scene's whole work folder.
 Cache keys do not depend on the policy: a dropped entry is recomputed when a later stage needs it,
-with identical bytes (stages are deterministic). Per-stage costs: bench/report-manifest.md.
+with identical bytes (stages are deterministic).
 """
 
 from __future__ import annotations
@@ -29,7 +26,11 @@ from nuplan_occ.pipeline.scene import SceneTask, output_slots
 from nuplan_occ.storage import DatasetWriter, FrameRecord
 
 KEEP_WORK = ("all", "default", "none")
-DEFAULT_KEPT_STAGES = frozenset({"register", "track", "reconstruct", "write"})
+
+
+def kept_stages(pipeline: list) -> frozenset[str]:
+    """Names of the stages whose cache entries the default work-folder policy keeps."""
+    return frozenset(stage.name for stage in pipeline if stage.kept)
 
 
 def params_metadata(params: dict[str, Any]) -> dict[str, Any]:
@@ -57,13 +58,14 @@ def failed_scene_rows(task: SceneTask, reason: str) -> list[dict]:
     return DatasetWriter(task.out_root, metadata={"params": {}}).write_shard(task.shard_key, records)
 
 
-def publish_scene(task: SceneTask, rows: list[dict], keep_work: str) -> None:
-    """Commit the scene's rows (one fragment; nothing if already published), then apply the work policy."""
+def publish_scene(task: SceneTask, rows: list[dict], keep_work: str, kept: frozenset[str]) -> None:
+    """Commit the scene's rows (one fragment; nothing if already published), then apply the work policy
+    (kept: the stages whose entries the default policy keeps)."""
     scene_writer(task).commit(rows)
-    trim_work(task.work_dir, keep_work)
+    trim_work(task.work_dir, keep_work, kept)
 
 
-def trim_work(work_dir: Path, keep_work: str) -> None:
+def trim_work(work_dir: Path, keep_work: str, kept: frozenset[str]) -> None:
     """Apply a work-folder policy to one scene's stage cache folder (see module docstring)."""
     if keep_work not in KEEP_WORK:
         raise ValueError(f"keep_work {keep_work!r} is not one of {KEEP_WORK}")
@@ -71,7 +73,7 @@ def trim_work(work_dir: Path, keep_work: str) -> None:
         shutil.rmtree(work_dir, ignore_errors=True)
     elif keep_work == "default" and work_dir.is_dir():
         for stage_dir in work_dir.iterdir():
-            if stage_dir.is_dir() and stage_dir.name not in DEFAULT_KEPT_STAGES:
+            if stage_dir.is_dir() and stage_dir.name not in kept:
                 shutil.rmtree(stage_dir, ignore_errors=True)
 
 

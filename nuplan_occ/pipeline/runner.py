@@ -11,23 +11,24 @@ only when complete), giving the same bytes."""
 from __future__ import annotations
 
 import resource
+import sys
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from nuplan_occ.io.errors import NuplanFormatError
 from nuplan_occ.pipeline.cache import StageCache, stable_hash
+from nuplan_occ.pipeline.params import ConfigError, default_params
 from nuplan_occ.pipeline.memory import release_free_memory, reuse_freed_pages
-from nuplan_occ.pipeline.publish import failed_scene_rows, publish_scene, row_counts
+from nuplan_occ.pipeline.publish import failed_scene_rows, kept_stages, publish_scene, row_counts
 from nuplan_occ.pipeline.scene import SceneTask, source_fingerprint
+from nuplan_occ.recon.params import ReconError
+from nuplan_occ.storage.errors import StorageWriteError
 
 EventSink = Callable[[tuple[str, str, str]], None]
 """Receives (log name, scene name, stage name) when a stage starts; "done" as the stage when finished."""
-
-
-class SceneError(RuntimeError):
-    """A scene could not be built at all (every output frame of it fails with this reason)."""
 
 
 @dataclass
@@ -48,20 +49,31 @@ class SceneResult:
     peak_rss_mb: float = 0.0  # peak RSS of the worker process so far
 
 
-def task_source_key(task: SceneTask) -> str:
-    """Identity of the scene's input: its DB file's fingerprint plus the scene token."""
-    return stable_hash("source", source_fingerprint([Path(task.db_path)]), task.scene_token, task.sensor_root,
-                       task.maps_root)
+def section_params(task: SceneTask, pipeline: list, stage) -> Any:
+    """The params `stage` reads: its section of the task's params, else the section's declared defaults."""
+    if stage.params_name in task.params:
+        return task.params[stage.params_name]
+    return default_params(pipeline)[stage.params_name]
+
+
+def task_source_key(task: SceneTask, pipeline: list) -> str:
+    """Identity of the scene's input: the fingerprint (path, size, mtime) of its DB file and of every file the
+    stages reading the task declare they read (`Stage.sources`: the scene's point cloud blobs, the map),
+    plus the scene token; a file put back, replaced or removed changes it."""
+    files = [Path(task.db_path)]
+    for stage in pipeline:
+        if "task" in stage.inputs and stage.sources is not None:
+            files.extend(stage.sources(task, section_params(task, pipeline, stage)))
+    return stable_hash("source", source_fingerprint(files), task.scene_token, task.sensor_root, task.maps_root)
 
 
 def stage_keys(task: SceneTask, pipeline: list) -> dict[str, str]:
     """Cache key of every stage, derived from keys alone (no stage has to run to know them):
     key = hash(stage name, params, code version, keys of the stages that made its inputs)."""
-    artifact_keys: dict[str, str] = {"task": task_source_key(task)}
+    artifact_keys: dict[str, str] = {"task": task_source_key(task, pipeline)}
     keys: dict[str, str] = {}
     for stage in pipeline:
-        params = task.params.get(stage.params_name, stage.params_type())
-        keys[stage.name] = stable_hash(stage.name, params, stage.code_version(),
+        keys[stage.name] = stable_hash(stage.name, section_params(task, pipeline, stage), stage.code_version(),
                                        [artifact_keys[name] for name in stage.inputs])
         artifact_keys.update({name: keys[stage.name] for name in stage.outputs})
     return keys
@@ -101,7 +113,7 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
         return artifacts[name]
 
     def params_of(stage) -> Any:
-        return task.params.get(stage.params_name, stage.params_type())
+        return section_params(task, pipeline, stage)
 
     def timed(stage, seconds: float) -> None:
         if result is not None:
@@ -158,12 +170,25 @@ def run_stages(task: SceneTask, pipeline: list, wanted: tuple[str, ...], events:
                     if k == len(frame_stages) - 1:
                         raise
                     frame["failure"] = f"{stage.name}: {type(exc).__name__}: {exc}"
-                    traceback.print_exc()
+                    if not isinstance(exc, EXPECTED_FAILURES):  # expected ones are told by their row
+                        report_failure(f"{task.log_name}/{task.scene_name} frame {position}", exc)
                 timed(stage, time.perf_counter() - started)
             shard.add(frame["record"])
         return shard.publish()
 
     return {name: obtain(name) for name in wanted}
+
+
+EXPECTED_FAILURES = (NuplanFormatError, ConfigError, ReconError)
+"""Failures of bad input or params, told in one line (unexpected ones print their traceback: a bug)."""
+
+
+def report_failure(what: str, exc: Exception) -> None:
+    """One line on stderr naming what failed and why for an expected failure, else the traceback."""
+    if isinstance(exc, EXPECTED_FAILURES):
+        print(f"nuplan-occ: {what} failed: {' '.join(str(exc).split())}", file=sys.stderr, flush=True)
+    else:
+        traceback.print_exc()
 
 
 STREAM_OUTPUT = "rows"
@@ -187,11 +212,13 @@ def run_scene(task: SceneTask, pipeline: list, events: EventSink | None = None) 
     result = SceneResult(task.log_name, task.scene_name)
     try:
         rows = run_stages(task, pipeline, ("rows",), events, result)["rows"]
+    except StorageWriteError:  # the output cannot be written (disk full, quota): the build stops, one line
+        raise
     except Exception as exc:  # a scene failure is recorded, never fatal to the build
         result.error = f"{type(exc).__name__}: {exc}"
-        traceback.print_exc()
+        report_failure(f"{task.log_name}/{task.scene_name}", exc)
         rows = failed_scene_rows(task, result.error)
-    publish_scene(task, rows, task.keep_work)
+    publish_scene(task, rows, task.keep_work, kept_stages(pipeline))
     result.frames_built, result.frames_failed, reasons, result.bytes_total = row_counts(rows)
     result.failure_reasons = dict(reasons)
     result.peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux

@@ -1,5 +1,5 @@
 """What a pipeline stage declares: its name, named inputs and outputs, typed params and the pure
-function that runs it. Stage modules in `stages/` build one `Stage` each (wiring only).
+function that runs it. The modules of `nuplan_occ/stages/` build one `Stage` each (wiring only).
 
 Two granularities: a scene stage runs once per scene and its outputs are scene artifacts (cached); a
 frame stage (per_frame=True) runs once per output frame, in DAG order, and its outputs are that frame's
@@ -7,12 +7,12 @@ artifacts, released once the frame is written (see nuplan_occ.pipeline.runner)."
 
 from __future__ import annotations
 
-import hashlib
-import importlib
 import inspect
+from dataclasses import dataclass
 from pathlib import Path
-from dataclasses import dataclass, field
 from typing import Any, Callable
+
+from nuplan_occ.pipeline.code_key import code_version
 
 
 @dataclass(frozen=True)
@@ -21,8 +21,11 @@ class Stage:
 
     run(inputs, params) -> outputs: `inputs` holds the artifacts named in `inputs` (produced by earlier
     stages, or the scene's source data for the first stage); it returns a dict with exactly `outputs`.
-    code: modules whose source is part of this stage's cache key (a change in them reruns the stage).
+    params_type: the params dataclass the stage declares (None for a stage that reads another stage's
+    section, named by params_section).
     cache: False for stages whose outputs are cheaper to recompute than to store (e.g. reading input).
+    kept: the default work-folder policy keeps this stage's cache entries after the scene is published
+    (small entries that make a param change cheap; see nuplan_occ.pipeline.publish).
     item_outputs: outputs that are sequences of one element per sweep or per frame (the stage's doc says which):
     the cache stores them one element at a time and the stages after this one read them back one element per access
     (pipeline.cache.StoredItems), so a scene's per-sweep outputs are not held in memory; their readers
@@ -37,22 +40,24 @@ class Stage:
     params_section: the params section it reads (default: its name), when two stages share one.
     prepare: frame stages only, optional: prepare(inputs, params) -> dict, run once per scene before its
     first frame on the stage's scene inputs; its outputs are added to them for every frame (per-scene work
-    the frames share, e.g. a spatial index; made from the inputs by the stage's own code, so the stage's
-    cache key covers it).
+    the frames share, e.g. a spatial index).
+    sources: stages reading the scene task only, optional: sources(task, params) -> the input files the stage
+    reads for the scene besides the log's DB (point cloud blobs, the map); their fingerprints join the task's
+    cache key, so a file put back or replaced rebuilds exactly the scenes that read it.
     """
 
     name: str
     inputs: tuple[str, ...]
     outputs: tuple[str, ...]
-    params_type: type
-    run: Callable[[dict[str, Any], Any], dict[str, Any]]
-    code: tuple[str, ...] = ()
+    params_type: type | None
+    run: Callable[..., dict[str, Any]]
     cache: bool = True
+    kept: bool = False
     item_outputs: tuple[str, ...] = ()
-    doc: str = field(default="", compare=False)
     per_frame: bool = False
     params_section: str = ""
     prepare: Callable[[dict[str, Any], Any], dict[str, Any]] | None = None
+    sources: Callable[[Any, Any], list[Path]] | None = None
 
     @property
     def params_name(self) -> str:
@@ -60,14 +65,6 @@ class Stage:
         return self.params_section or self.name
 
     def code_version(self) -> str:
-        """sha256 over the source of the stage's own module and its declared code modules (a package
-        counts with every .py file below it)."""
-        digest = hashlib.sha256()
-        modules = [inspect.getmodule(self.run).__name__, *self.code]  # type: ignore[union-attr]
-        for name in modules:
-            module = importlib.import_module(name)
-            files = sorted(Path(module.__path__[0]).rglob("*.py")) if hasattr(module, "__path__") else [Path(module.__file__)]
-            for path in files:
-                digest.update(path.name.encode())
-                digest.update(path.read_bytes())
-        return digest.hexdigest()
+        """Hash of the stage module's source and of every project module it imports, transitively
+        (nuplan_occ.pipeline.code_key): any edit of the code the stage runs changes it."""
+        return code_version(inspect.getmodule(self.run).__name__)  # type: ignore[union-attr]

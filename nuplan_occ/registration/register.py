@@ -1,14 +1,14 @@
-"""Refinement of logged ego poses by registering background sweeps to a local map (algorithms.md B.4, B.5).
+"""Refinement of logged ego poses by registering background sweeps to a local map (KISS-ICP-style point-to-plane ICP against a local map).
 
 Procedure (all in the "local" frame = the ego frame of logged frame 0, to keep coordinates small):
 1. Frame k's prior is the refined pose of frame k-1 times the LOGGED relative motion k-1 -> k.
 2. Its voxel-downsampled background is registered, coarse to fine, to a local map made of the last
-   `window` trusted sweeps (point-to-plane Gauss-Newton ICP with a Tukey kernel, kd-tree (fbsa.knn)
-   correspondences re-queried only where they can have changed (fbsa.tracked_nearest), map voxel means updated
+   `window` trusted sweeps (point-to-plane Gauss-Newton ICP with a Tukey kernel, kd-tree (points.knn)
+   correspondences re-queried only where they can have changed (tracked_nearest), map voxel means updated
    as sweeps enter and leave the window, PCA map normals computed only for the map points matched
-   (fbsa.plane_normals) and kept by map voxel for the next frames (normal_reuse_frames); deterministic,
+   (points.plane_normals) and kept by map voxel for the next frames (normal_reuse_frames); deterministic,
    unlike Open3D's parallel ICP). Sweeps and map are downsampled to
-   voxel centroids on grids aligned with their frame's origin (fbsa.voxel_reduce). This refines all six
+   voxel centroids on grids aligned with their frame's origin (points.voxel_reduce). This refines all six
    degrees of freedom, z, roll and pitch included, so that the ground does not layer.
 3. The result is gated: too few points, empty map, low fitness, high RMSE, degenerate geometry (a direction
    without point-to-plane constraint, e.g. a featureless plane) or an implausibly large correction with respect
@@ -51,35 +51,20 @@ CONVERGED_STEP = 1e-5
 
 @dataclass
 class RegistrationParams:
-    """Defaults tuned on the synthetic street of tests/fbsa (10 Hz sweeps, noisy log 0.3 m / 1 deg).
+    """Settings of `refine_poses` (the register stage declares each one's meaning, unit and range).
 
-    voxel_size_m: source sweep downsampling; map_voxel_m: local-map downsampling; window: number of previous
-    trusted sweeps in the local map; max_correspondence_m: correspondence distances of the coarse-to-fine ICP
-    stages (the first must exceed the expected prior error); tukey_ratio: Tukey kernel width as a fraction of the
-    stage's correspondence distance; max_iterations: per stage; coarse_stride: the first stage (of several) fits
-    every n-th source point only, and the finer stages all of them from its estimate (1: all points in every
-    stage; the poses measured for 4 and 1 are in bench/report-scale.md's notes); normal_radius_m /
-    normal_max_nn: map normals;
-    normal_reuse_frames: a map voxel's normal, once computed, serves the following frames' maps for this many
-    frames before it is computed again from the current map (0: computed afresh for every frame). On the 5 s
-    city scene (20 Hz) 10 cuts the normals computed per frame about fourfold at no loss in pose error vs truth.
-    Gates (on the last stage): min_points (after downsampling), min_fitness (share of source points with a
-    correspondence), max_rmse_m (point-to-plane RMSE), min_conditioning (smallest / largest eigenvalue of the
-    point-to-plane information, rotation scaled by the points' RMS range), max_translation_m and
-    max_rotation_deg (the correction with respect to the prior). Measured conditioning on the synthetic street:
-    0.10-0.22 for full sweeps, 0.10-0.13 with buildings on one side only, 0.003-0.005 for a road patch without
-    structure (map normals are noisy), about 1e-6 for a perfect plane; hence 0.02.
+    voxel_size_m / map_voxel_m: downsampling of the source sweep / the local map (m); window: previous trusted
+    sweeps in the local map; max_correspondence_m: correspondence distance of each coarse-to-fine ICP stage
+    (m); tukey_ratio: Tukey kernel width as a fraction of it; max_iterations: per stage; coarse_stride: the
+    first of several stages fits every n-th source point, the finer ones all of them from its estimate;
+    normal_radius_m / normal_max_nn: map normals; normal_reuse_frames: frames a map voxel's normal serves
+    before it is estimated again (0: every frame). Gates on the last stage: min_points (after downsampling),
+    min_fitness (share of source points with a correspondence), max_rmse_m (point-to-plane RMSE, m),
+    min_conditioning (smallest / largest eigenvalue of the point-to-plane information, rotation scaled by the
+    points' RMS range), max_translation_m / max_rotation_deg (the correction with respect to the prior).
     anchor: "fit" or "first" (module docstring); log_sigma_xy_m / log_sigma_deg: weights of the "fit" anchor.
-    sweep_stride: used by the register stage, which registers only the sweeps of
-    `SceneData.background_positions(sweep_stride)` (every output sweep and every n-th sweep in phase with them;
-    1: every sweep) and passes the others as None, so their poses are interpolated (`refine_poses`).
-    stride_min_sweeps: scenes with fewer loaded sweeps than this register every sweep whatever the stride (and,
-    in the register stage, with coarse_stride 1).
-    min_voxel_points: the downsampled sweep and its contribution to the map keep only the voxels holding at
-    least this many of its points (1: all), so isolated returns do not enter ICP when no outlier filter ran on
-    the sweep. It needs dense sweeps: on sparse ones few voxels hold two returns and the fit's gates reject
-    the sweep. unfiltered_min_voxel_points: the min_voxel_points the register stage uses for sweeps the filter
-    stage passed through unfiltered (FilterParams.aggregate_min_sweeps: long scenes of dense sweeps).
+    min_voxel_points: the downsampled sweep and its map contribution keep only voxels holding at least this
+    many of its points (1: all).
     """
 
     voxel_size_m: float = 0.3
@@ -101,10 +86,7 @@ class RegistrationParams:
     anchor: str = "fit"
     log_sigma_xy_m: float = 0.3
     log_sigma_deg: float = 1.0
-    sweep_stride: int = 2
-    stride_min_sweeps: int = 40
     min_voxel_points: int = 1
-    unfiltered_min_voxel_points: int = 2
 
 
 @dataclass
@@ -223,7 +205,7 @@ class _LocalMap:
 def _point_to_plane_icp(source: np.ndarray, target: np.ndarray, normals: LazyNormals, nearest: TrackedNearest,
                         init: np.ndarray, max_distance: float, tukey_k: float, max_iterations: int
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton point-to-plane ICP with a Tukey kernel (normal equations: fbsa.point_to_plane; deterministic:
+    """Gauss-Newton point-to-plane ICP with a Tukey kernel (normal equations: registration.point_to_plane; deterministic:
     Open3D's ICP is not bit-reproducible between runs, and the build must give identical bytes).
 
     source (n, 3) points in their own frame; target (m, 3) and its normals in the map frame; `nearest` the

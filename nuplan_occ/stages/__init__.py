@@ -1,12 +1,13 @@
-"""The build DAG, top to bottom. Each module declares one Stage: inputs, outputs, typed params, and the
-pure functions of `nuplan_occ` it calls.
+"""The build DAG, top to bottom: one module per stage, each declaring its inputs, outputs, typed params and
+the library functions it calls. `PIPELINE` is the one place that holds their order.
 
-    scene stages: load -> split -> filter -> register -> track -> lidar_rays -> aggregate -> reconstruct -> support
-                  -> label_map
+    scene stages: load -> split -> filter -> register -> track -> lidar_rays -> aggregate -> reconstruct
+                  -> support -> label_map
     frame stages, streamed frame by frame: voxelize -> label -> visibility -> write
 """
 
-from nuplan_occ.stages import aggregate, filter, label, load, reconstruct, register, split, support, track, visibility, voxelize, write
+from nuplan_occ.stages import (aggregate, filter, label, label_map, lidar_rays, load, reconstruct, register, split,
+                               support, track, visibility, voxelize, write)
 
 PIPELINE = [
     load.STAGE,
@@ -14,11 +15,11 @@ PIPELINE = [
     filter.STAGE,
     register.STAGE,
     track.STAGE,
-    visibility.RAYS_STAGE,
+    lidar_rays.STAGE,
     aggregate.STAGE,
     reconstruct.STAGE,
     support.STAGE,
-    label.MAP_STAGE,
+    label_map.STAGE,
     voxelize.STAGE,
     label.STAGE,
     visibility.STAGE,

@@ -1,10 +1,9 @@
-"""Stage 1, split (FBSA): per sweep, foreground points of each track in its box frame, background
-points outside every enlarged box and outside the ego vehicle; the margin shell goes to neither.
+"""split: per sweep, each track's foreground points in its box frame, and the background: the points outside
+every enlarged box and outside the ego vehicle; the margin shell between the two goes to neither.
 
-Inputs: `scene`. Outputs: `splits` (sequence aligned with scene.sweeps, None for failed sweeps; each
-sweep's split is made when the filter asks for it and not cached: the filter reads only the sweeps it keeps,
-every other one on long scenes, and splitting a sweep again costs less than storing and reading it back,
-bench/report-scale.md's notes).
+Inputs: `scene`. Outputs: `splits` (sequence aligned with scene.sweeps, None for failed sweeps). Not cached:
+each sweep is split when the filter stage asks for it (it reads only the sweeps it keeps), which costs less
+than storing every split and reading it back.
 """
 
 from __future__ import annotations
@@ -12,17 +11,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from nuplan_occ.aggregation.split import split_frame
+from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.sequences import MappedSequence
 
 
 @dataclass(frozen=True)
 class SplitParams:
-    """box_margin: scale of the enlarged boxes that background must avoid; ego_margin_m: padding of the
-    ego vehicle's own footprint (nuPlan Pacifica)."""
-
-    box_margin: float = 1.1
-    ego_margin_m: float = 0.3
+    box_margin: float = param(1.1, "scale of the enlarged boxes that background points must avoid", low=1.0)
+    ego_margin_m: float = param(0.3, "padding around the ego vehicle's own footprint (nuPlan Pacifica)",
+                                unit="m", low=0.0)
 
 
 def run(inputs: dict, params: SplitParams) -> dict:
@@ -37,5 +35,4 @@ def run(inputs: dict, params: SplitParams) -> dict:
     return {"splits": MappedSequence(scene.sweeps, split)}
 
 
-STAGE = Stage("split", inputs=("scene",), outputs=("splits",), params_type=SplitParams, run=run,
-              code=("nuplan_occ.aggregation.split", "nuplan_occ.points.box_kernels"), cache=False, doc=__doc__ or "")
+STAGE = Stage("split", inputs=("scene",), outputs=("splits",), params_type=SplitParams, run=run, cache=False)

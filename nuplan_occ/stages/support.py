@@ -1,4 +1,4 @@
-"""Scene pass `support` (params section `visibility`), for the visibility stage's free-space test: for each
+"""support (params: the `visibility` section, declared by the visibility stage): for the visibility stage's free-space test: for each
 output frame with LiDAR observations, the voxels of its grid that hold at least one point of the background
 aggregate (nuplan_occ.rays.free_space.sorted_point_support), as packed bits. Made once per scene, before the
 frame stream, so the stream reads one frame's bits at a time instead of holding the whole aggregate, whose
@@ -12,16 +12,17 @@ unless `lidar` and `clear_free_space`.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.rays.free_space import sorted_point_support
-from nuplan_occ.stages.visibility import VisibilityParams
 
 
-def run(inputs: dict, params: VisibilityParams) -> dict:
+def run(inputs: dict, params: Any) -> dict:
     scene, background = inputs["scene"], inputs["background_aggregate"]
     tokens = inputs["observations"].tokens if params.lidar and params.clear_free_space else []
     if tokens and np.any(np.diff(background.points[:, 0]) < 0):
@@ -39,6 +40,5 @@ def run(inputs: dict, params: VisibilityParams) -> dict:
 
 
 STAGE = Stage("support", inputs=("scene", "registration", "background_aggregate", "observations"),
-              outputs=("background_support",), item_outputs=("background_support",), params_type=VisibilityParams,
-              run=run, code=("nuplan_occ.voxel",), doc=__doc__ or "",
-              params_section="visibility")
+              outputs=("background_support",), item_outputs=("background_support",), params_type=None,
+              params_section="visibility", run=run)

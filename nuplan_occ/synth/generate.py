@@ -124,7 +124,7 @@ def _params(preset: Preset, options: SynthOptions, logs: int, seconds: float, se
 def synthesize(out_root: Path, logs: int = 1, seconds: float = 10.0, seed: int = 0, preset: str = "small",
                options: SynthOptions | None = None, truth_rate_hz: float = 20.0,
                progress: Callable[[str], None] | None = None, location: str = "us-nv-las-vegas-strip",
-               scene_seconds: float | None = None, camera_rate_hz: float = 10.0, camera_mask: bool = True) -> SynthResult:
+               scene_seconds: float | None = None, camera_rate_hz: float = 10.0, camera_mask: bool = False) -> SynthResult:
     """Write `logs` synthetic logs of `seconds` each (20 Hz sweeps), their map and their truth under out_root.
     scene_seconds: scene length (None: the preset's, at least 5 scenes per log; see logbuild.build_log).
 

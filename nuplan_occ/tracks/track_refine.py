@@ -31,25 +31,18 @@ from nuplan_occ.geometry import wrap_angle, yaw_matrix
 
 @dataclass(frozen=True)
 class TrackRefineParams:
-    """Defaults measured on a synthetic vehicle (30 partial views, box noise 8 cm / 1 deg): residual
-    error 0.2-0.5 cm / 0.07 deg after 3 rounds of 8 iterations (12 rounds were needed when each point was
-    matched to its nearest model point instead of its neighbours' mean).
+    """Settings of a track's refinement (the track stage declares each one's meaning, unit and range).
 
-    rounds: model rebuilds; icp_iterations per frame and round; min_points: fewer points in a frame ->
-    no correction for it (zero); min_frames: tracks seen in fewer frames are left alone; max_distance_m:
-    correspondences farther apart are ignored; huber_m: residual scale of the robust weights;
-    prior_translation_m / prior_yaw_deg: 1-sigma size of a box error (the corrections are pulled toward 0
-    with this weight, which keeps directions the points do not constrain at 0); model_voxel_m: the model
-    is thinned to one point per cube of this edge; normal_neighbors: points per normal estimate;
-    exclude_neighbors: model points searched per point (those of the point's own frame are skipped; the
-    target is the mean of the rest); smooth_window_s: after the ICP corrections, box poses are smoothed
-    in the global frame (smooth_track_poses) over this half window; a track whose boxes' median speed is
-    below static_speed_mps and whose boxes stay within static_travel_m is static (one pose for all its
-    frames); weight_per_point: weight of an ICP-corrected frame in the smoothing is 1 + this * its points
-    (at most 400), an uncorrected frame weighs 1. snap_max_size_m / snap_radius_m / snap_min_height_m:
-    a static track whose box footprint is at most snap_max_size_m is moved in x, y (up to snap_radius_m)
-    onto its points higher than snap_min_height_m above the ground (fbsa.box_snap; 0 radius: off), unless
-    its box already holds snap_keep_ratio of the best shift's point count (BoxSnapParams.keep_ratio)."""
+    rounds: model rebuilds; icp_iterations: per frame and round; min_points: a frame with fewer points gets no
+    correction (zero); min_frames: tracks seen in fewer frames are left alone; max_distance_m: correspondences
+    farther apart are ignored (m); huber_m: residual scale of the robust weights (m); prior_translation_m /
+    prior_yaw_deg: 1-sigma size of a box error, pulling the corrections toward 0 (directions the points do not
+    constrain stay at 0); model_voxel_m: the model keeps one point per cube of this edge (m);
+    normal_neighbors: points per normal estimate; exclude_neighbors: model points searched per point (those of
+    its own frame skipped, the target is the mean of the rest). Smoothing in the global frame
+    (`smooth_track_poses`): smooth_window_s half window (s); a track whose boxes' median speed is below
+    static_speed_mps (m/s) and whose boxes stay within static_travel_m (m) is static (one pose);
+    weight_per_point: a corrected frame weighs 1 + this * its points (at most 400), an uncorrected one 1."""
 
     rounds: int = 3
     icp_iterations: int = 8
@@ -66,10 +59,6 @@ class TrackRefineParams:
     static_speed_mps: float = 0.3
     static_travel_m: float = 0.5
     weight_per_point: float = 0.04
-    snap_max_size_m: float = 1.0
-    snap_radius_m: float = 0.5
-    snap_min_height_m: float = 0.2
-    snap_keep_ratio: float = 0.5
 
 
 def apply_correction(points_box: np.ndarray, correction: np.ndarray) -> np.ndarray:

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 from nuplan_occ.pipeline.build import logs_of_shard
-from nuplan_occ.pipeline.publish import DEFAULT_KEPT_STAGES, trim_work
+from nuplan_occ.stages import PIPELINE
+from nuplan_occ.pipeline.publish import kept_stages, trim_work
 from nuplan_occ.storage import read_manifest
 from nuplan_occ.storage.digest import content_digests
 from nuplan_occ.storage.validate import validate_dataset
@@ -58,15 +59,16 @@ def test_build_shards_partition_logs_by_name():
 
 
 def test_work_policies(tmp_path):
-    stages = ["split", "filter", "register", "track", "aggregate", "reconstruct", "voxelize", "label",
-              "visibility", "write"]
+    stages = [stage.name for stage in PIPELINE]
+    kept = kept_stages(PIPELINE)
+    assert kept == {"register", "track", "reconstruct", "write"}
     for policy in ("all", "default", "none"):
         scene = tmp_path / policy / "log" / "scene-0000"
         for stage in stages:
             (scene / stage).mkdir(parents=True)
             (scene / stage / "k.pkl.zst").write_bytes(b"x")
-        trim_work(scene, policy)
-        kept = sorted(p.name for p in scene.iterdir()) if scene.exists() else []
-        assert kept == {"all": sorted(stages), "default": sorted(DEFAULT_KEPT_STAGES), "none": []}[policy]
+        trim_work(scene, policy, kept)
+        left = sorted(p.name for p in scene.iterdir()) if scene.exists() else []
+        assert left == {"all": sorted(stages), "default": sorted(kept), "none": []}[policy]
     with pytest.raises(ValueError, match="keep_work"):
-        trim_work(tmp_path, "some")
+        trim_work(tmp_path, "some", kept)

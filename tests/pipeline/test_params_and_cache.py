@@ -10,7 +10,10 @@ import numpy as np
 import pytest
 
 from nuplan_occ.pipeline.cache import StageCache, stable_hash
-from nuplan_occ.pipeline.params import ConfigError, apply_overrides, load_config_file, parse_set_options
+from nuplan_occ.cli.app import _build_params
+from nuplan_occ.pipeline.params import (ConfigError, apply_overrides, check_params, default_params, load_config_file,
+                                       param_rows, parse_set_options)
+from nuplan_occ.stages import PIPELINE
 
 
 @dataclass(frozen=True)
@@ -29,7 +32,7 @@ def test_overrides_coerce_types_and_reject_unknown_names(tmp_path):
         apply_overrides(params, {"splat": {"margin": 1}}, "cfg")
     with pytest.raises(ConfigError, match="has no param 'margn'"):
         apply_overrides(params, {"split": {"margn": 1}}, "cfg")
-    with pytest.raises(ConfigError, match="expected float"):
+    with pytest.raises(ConfigError, match="expected a number"):
         apply_overrides(params, {"split": {"margin": "wide"}}, "cfg")
     with pytest.raises(ConfigError, match="STAGE.PARAM=VALUE"):
         parse_set_options(["margin=1"])
@@ -79,3 +82,45 @@ def test_an_output_stored_item_by_item_reads_back_one_element_per_access(tmp_pat
     items = tmp_path / "filter" / "k.background.items"
     items.write_bytes(items.read_bytes()[:-10])  # a damaged (truncated) item file: the entry counts as absent
     assert cache.get("filter", "k") is None
+
+
+def test_every_stage_param_is_declared_with_a_meaning_and_its_default_passes_its_own_checks():
+    for section, value in default_params(PIPELINE).items():
+        rows = param_rows(type(value))
+        assert rows and all(row["meaning"] for row in rows), section
+        check_params(value, section)
+    readers = {stage.params_name for stage in PIPELINE}
+    assert readers == set(default_params(PIPELINE))  # every section read is declared by one stage
+
+
+def test_a_tuple_param_from_set_is_a_tuple_of_its_element_type():
+    params = _build_params(None, ["register.max_correspondence_m=1.0,0.5", "aggregate.rigid_categories=vehicle"], None)
+    assert params["register"].max_correspondence_m == (1.0, 0.5)
+    assert params["aggregate"].rigid_categories == ("vehicle",)
+
+
+def test_a_config_files_rate_is_not_overwritten_by_the_cli_default(tmp_path):
+    config = tmp_path / "my.toml"
+    config.write_text("[load]\nrate_hz = 5.0\n")
+    assert _build_params(config, [], None)["load"].rate_hz == 5.0
+    assert _build_params(config, [], 2.0)["load"].rate_hz == 2.0  # given on the command line: it wins
+    assert _build_params(None, [], None)["load"].rate_hz == 10.0
+
+
+@pytest.mark.parametrize("override, message", [
+    ({"filter": {"std_ratio": "nan"}}, "not a finite number"),
+    ({"filter": {"std_ratio": -1.0}}, "below the allowed range"),
+    ({"filter": {"nb_neighbors": 8.9}}, "expected a whole number"),
+    ({"visibility": {"lidar": 2}}, "expected true or false"),
+    ({"filter": {"method": 5}}, "expected text"),
+    ({"reconstruct": {"method": "marching"}}, "is not one of"),
+    ({"aggregate": {"rigid_categories": "vehicle,spaceship"}}, "'spaceship' is not one of"),
+    ({"write": {"members": "semantics,bogus"}}, "'bogus' is not one of"),
+    ({"load": {"rate_hz": 0}}, "below the allowed range"),
+    ({"load": {"rate_hz": -10}}, "below the allowed range"),
+    ({"load": {"rate_hz": 40}}, "exceeds the sweep rate"),
+])
+def test_bad_values_fail_at_parse_time_naming_the_source(override, message):
+    with pytest.raises(ConfigError, match=message) as raised:
+        apply_overrides(default_params(PIPELINE), override, "my.toml")
+    assert str(raised.value).startswith("my.toml: ")

@@ -31,7 +31,8 @@ SECONDS = 0.3  # 6 sweeps; images at sweeps 0, 2, 4; truth at 10 Hz: sweeps 0, 2
 @pytest.fixture(scope="module")
 def out(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth_cameras")
-    result = synthesize(root, logs=1, seconds=SECONDS, seed=5, truth_rate_hz=10.0, camera_rate_hz=10.0)
+    result = synthesize(root, logs=1, seconds=SECONDS, seed=5, truth_rate_hz=10.0, camera_rate_hz=10.0,
+                        camera_mask=True)
     assert result.images == 3 * 8 and result.truth_frames == 3
     return root, result
 
