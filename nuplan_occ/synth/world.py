@@ -24,6 +24,7 @@ from nuplan_occ.synth.scenery import Scenery, build_scenery
 
 LOCATIONS: dict[str, tuple[int, str, tuple[float, float]]] = {
     "us-nv-las-vegas-strip": (32611, "9.15.1915", (664000.0, 3997000.0)),
+    "us-pa-pittsburgh-hazelwood": (32617, "9.17.1937", (589000.0, 4476000.0)),
 }
 """location -> (EPSG, map version, (easting, northing) of the world's local origin)."""
 
