@@ -23,7 +23,7 @@ from occgen.data import load_clip, open_clips, semantics_batches
 from occgen.export import GeneratedScene, translation, write_scenes
 from occgen.metrics import OccupancyIoU
 from occgen.synthetic import synthetic_scene
-from occgen.train import StepCallback, clip_len_for, train_dit, train_vae
+from occgen.train import StepCallback, clip_len_for, train_vae
 from occgen.vae import OccVAE
 
 BENCH_GRID = GridSpec(x_min=-8.0, x_max=8.0, y_min=-8.0, y_max=8.0)
@@ -108,18 +108,6 @@ def run_vae_bench(data_root: str, steps: int, config: str = "tiny", crop: int | 
         "frames_scored": sum(len(positions) for _, positions in plan),
         "losses": [h["total"] for h in history], "loss_terms": history,
     }
-
-
-def run_dit_bench(data_root: str, vae: OccVAE, steps: int, config: str = "tiny", task: str = "spatial",
-                  crop: int | None = None, seed: int = 0) -> dict:
-    """Train a DiT on a trained VAE; losses per step and the means of the first / last 10 % of steps."""
-    cfg = get_config(config)
-    dataset = open_clips(data_root, clip_len=clip_len_for(cfg, task))
-    batches = semantics_batches(dataset, cfg.batch_size, crop, torch.Generator().manual_seed(seed))
-    _, scale, losses = train_dit(batches, vae, cfg, steps, task, seed)
-    k = max(steps // 10, 1)
-    return {"config": config, "task": task, "steps": steps, "latent_scale": scale, "losses": losses,
-            "loss_first": float(np.mean(losses[:k])), "loss_last": float(np.mean(losses[-k:]))}
 
 
 def write_curve_png(curves: dict[str, list[float]], path: str | Path, title: str = "occgen training loss",

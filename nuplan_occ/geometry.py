@@ -50,11 +50,6 @@ def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return T
 
 
-def transform_from_quaternion(translation: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
-    """4x4 transform from a translation (3,) and a quaternion [w, x, y, z]."""
-    return make_transform(quaternion_to_matrix(q_wxyz), translation)
-
-
 def invert_transform(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid 4x4 transform."""
     R, t = T[:3, :3], T[:3, 3]

@@ -36,7 +36,6 @@ Training targets: the dataset holds occupancy only, so the "real" sweeps are the
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -48,10 +47,9 @@ from torch import nn
 from nuplan_occ.dataset import open_dataset
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import LIDAR_NAMES, PointCloud
-from occgen.lidar_metrics import sweep_metrics
 from occgen.lidar_sampling import GROUPS, N_GROUPS, occupancy_prior_samples, point_cues
 from occgen.lidar_raycast import (LidarSpec, RangeImage, SensorEffects, VoxelRaycaster, default_lidar_rig, scan,
-                                  to_point_cloud, write_sweep)
+                                  to_point_cloud)
 from occgen.video_cond import load_local_state
 
 N_LIDARS = len(LIDAR_NAMES)
@@ -332,60 +330,3 @@ def dataset_frames(root: str, indices: list[int], rig: list[LidarSpec], cfg: Lid
         sems.append(f["semantics"])
         frames.append(make_frame(f["semantics"], ds.grid, rig, cfg, effects))
     return ds.grid, tokens, sems, frames
-
-
-def run_lidar_bench(dataset_root: str, steps: int = 3000, density: float = 0.25, seed: int = 0,
-                    out_dir: str | Path | None = None) -> dict:
-    """Learned model vs ray casting, both against the stand-in real sensor, on held-out frames.
-
-    The last quarter (at least one) of the dataset's frames are held out; a single-frame dataset trains and
-    tests on the same frame ("held_out": False). Metrics: occgen.lidar_metrics (MMD, JSD, Chamfer).
-    "redraw" scores a second, independent draw of the stand-in real sensor (other noise, drop-out and
-    mounting error): the floor a perfect generator would reach. The learned model trains on one thread.
-    out_dir: if given, the sweeps are written there as PCD (real/, raycast/, learned/, redraw/).
-    """
-    torch.manual_seed(seed)
-    cfg = LidarModelConfig()
-    rig = default_lidar_rig(density)
-    n = len(open_dataset(dataset_root))
-    n_test = max(1, n // 4)
-    train_idx = list(range(n - n_test)) or list(range(n))
-    test_idx = list(range(n - n_test, n))
-    grid, _, _, train_frames = dataset_frames(dataset_root, train_idx, rig, cfg, seed)
-    _, tokens, test_sems, test_frames = dataset_frames(dataset_root, test_idx, rig, cfg, seed)
-    model = LidarModel(cfg)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        t0 = time.perf_counter()
-        losses = train(model, train_frames, grid, rig, steps, seed=seed)
-        train_s = time.perf_counter() - t0
-    finally:
-        torch.set_num_threads(threads)
-    model.eval()
-    sets: dict[str, dict[str, PointCloud]] = {"real": {}, "raycast": {}, "learned": {}, "redraw": {}}
-    for i, token, sem, frame in zip(test_idx, tokens, test_sems, test_frames):
-        sets["real"][token] = to_point_cloud(frame.targets)
-        caster = VoxelRaycaster(sem, grid)
-        sets["raycast"][token] = to_point_cloud([scan(caster, spec) for spec in rig])
-        redraw = SensorEffects(seed=seed + n + i)
-        sets["redraw"][token] = to_point_cloud([scan(caster, spec, redraw) for spec in rig])
-        sets["learned"][token] = generate(model, sem, grid, rig, seed=seed + i)
-    if out_dir is not None:
-        for name, clouds in sets.items():
-            for token, cloud in clouds.items():
-                write_sweep(Path(out_dir) / name / f"{token}.pcd", cloud)
-    xyz = {name: {t: c.xyz for t, c in clouds.items()} for name, clouds in sets.items()}
-    k = max(1, len(losses) // 10)
-    return {
-        "frames_train": len(train_idx), "frames_test": len(test_idx), "held_out": n > 1, "steps": steps,
-        "density": density, "train_s": round(train_s, 2),
-        "loss_first": float(np.mean(losses[:k])) if losses else float("nan"),
-        "loss_last": float(np.mean(losses[-k:])) if losses else float("nan"),
-        "points_real": int(np.mean([len(c) for c in sets["real"].values()])),
-        "points_raycast": int(np.mean([len(c) for c in sets["raycast"].values()])),
-        "points_learned": int(np.mean([len(c) for c in sets["learned"].values()])),
-        "learned": sweep_metrics(xyz["learned"], xyz["real"]),
-        "raycast": sweep_metrics(xyz["raycast"], xyz["real"]),
-        "redraw": sweep_metrics(xyz["redraw"], xyz["real"]),
-    }

@@ -205,8 +205,3 @@ def painted_lines(layers: dict[str, MapLayer]) -> np.ndarray:
                             shapely.boundary(map_geometries(layers, STOP_LINE_LAYERS))])
     parts = shapely.get_parts(lines) if len(lines) else np.zeros(0, dtype=object)
     return parts[shapely.get_type_id(parts) != 0] if len(parts) else parts
-
-
-def drivable_columns(bev: np.ndarray) -> np.ndarray:
-    """(X, Y) bool: columns whose ground is drivable (road or a painted line)."""
-    return (bev == ROAD) | (bev == ROAD_LINE)
