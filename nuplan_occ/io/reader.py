@@ -80,6 +80,9 @@ POSE_EDGE_LIMIT_US = 50_000
 """Before the first or after the last usable ego_pose row, a frame's pose is extrapolated from the two rows
 at that end (constant velocity and turn rate) only up to 0.05 s: half a 10 Hz output period."""
 
+_CHUNK_ROWS = 16_384
+"""Rows fetched at a time from large tables read as columns."""
+
 BOX_WINDOW_US = 10_000_000
 """`boxes(frame)` reads the boxes of this much time (µs) around the frame in one query and keeps them, so
 walking a log frame by frame costs one table scan per window on a DB without a lidar_pc_token index."""
@@ -104,6 +107,8 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
 def leaves_folder(name: str) -> bool:
     """True when a stored relative file name is absolute, holds a '..' part or a NUL byte: joined to a folder
     it could name a file outside it. (Symlinks inside the folder are followed: the user placed them.)"""
+    if ".." not in name and "\x00" not in name and not name.startswith(("/", "\\")) and name[1:2] != ":":
+        return False
     path = PurePosixPath(name.replace("\\", "/"))
     return "\x00" in name or path.is_absolute() or ".." in path.parts or bool(re.match(r"^[A-Za-z]:", name))
 
@@ -303,13 +308,16 @@ class NuplanLog:
         """The usable ego_pose rows as columns (see the module docstring); the others are counted in notes."""
         timestamp = "CASE WHEN typeof(timestamp) = 'integer' THEN timestamp END"
         values = ", ".join(_numeric(c) for c in ("x", "y", "z", "qw", "qx", "qy", "qz"))
-        rows = self._db.execute(f"SELECT token, {timestamp}, {values} FROM ego_pose "
-                                "ORDER BY timestamp, token").fetchall()
-        table = np.array([r[1:] for r in rows], dtype=np.float64).reshape(-1, 8)
-        tokens = [r[0] for r in rows]
-        del rows
-        if any(not isinstance(t, bytes) or not t for t in tokens):
-            raise SchemaError(self.path, "ego_pose.token holds a NULL or non-BLOB token")
+        cursor = self._db.execute(f"SELECT token, {timestamp}, {values} FROM ego_pose ORDER BY timestamp, token")
+        tables, token_chunks = [np.zeros((0, 8))], [np.zeros(0, dtype="U1")]
+        while rows := cursor.fetchmany(_CHUNK_ROWS):  # chunks: no Python object per row of the whole table at once
+            if any(not isinstance(r[0], bytes) or not r[0] for r in rows):
+                raise SchemaError(self.path, "ego_pose.token holds a NULL or non-BLOB token")
+            tables.append(np.array([r[1:] for r in rows], dtype=np.float64).reshape(-1, 8))
+            token_chunks.append(np.array([r[0].hex() for r in rows], dtype=str))
+        table = np.concatenate(tables)
+        tokens = np.concatenate(token_chunks)
+        del tables, token_chunks
         times, xyz, q = table[:, 0], table[:, 1:4], table[:, 4:8]
         with np.errstate(invalid="ignore"):
             norm = np.linalg.norm(q, axis=1)
@@ -326,8 +334,7 @@ class NuplanLog:
             self.notes.append(f"{self.path}: {int(repeated.sum())} ego_pose rows repeat a timestamp; the first "
                               "by token is used")
         keep = usable & ~repeated
-        return EgoPoseTable(tokens=np.array([t for t, k in zip(tokens, keep) if k], dtype=bytes).reshape(-1),
-                            timestamps_us=times_int[keep], xyz=xyz[keep].copy(),
+        return EgoPoseTable(tokens=tokens[keep], timestamps_us=times_int[keep], xyz=xyz[keep].copy(),
                             quaternions=q[keep] / norm[keep, None])
 
     def _read_scenes(self) -> list[SceneRecord]:
@@ -388,14 +395,15 @@ class NuplanLog:
     def images(self) -> ImageTable:
         """The image rows as columns (read on first use; empty without an image table)."""
         if "image" not in self._columns:
-            empty = np.zeros(0, dtype=bytes)
-            return ImageTable(empty, np.zeros(0, dtype=np.int64), empty, empty)
+            return ImageTable(np.zeros(0, dtype=str), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=str),
+                              np.zeros(0, dtype=bytes))
         rows = self._db.execute(f"SELECT token, camera_token, filename_jpg, {_numeric('timestamp')} FROM image "
                                 "ORDER BY timestamp, token").fetchall()
-        column = [np.array([r[k] if isinstance(r[k], bytes) else str(r[k] or "").encode() for r in rows],
-                           dtype=bytes).reshape(-1) for k in range(3)]
+        tokens = [np.array([r[k].hex() if isinstance(r[k], bytes) else "" for r in rows], dtype=str).reshape(-1)
+                  for k in range(2)]
+        filenames = np.array([str(r[2] or "").encode() for r in rows], dtype=bytes).reshape(-1)
         times = np.array([r[3] if r[3] is not None else -1 for r in rows], dtype=np.int64).reshape(-1)
-        return ImageTable(tokens=column[0], timestamps_us=times, camera_tokens=column[1], filenames=column[2])
+        return ImageTable(tokens=tokens[0], timestamps_us=times, camera_tokens=tokens[1], filenames=filenames)
 
     @cached_property
     def _track_table(self) -> tuple[dict[str, TrackRecord], dict[str, str]]:
@@ -484,11 +492,10 @@ class NuplanLog:
         columns = ", ".join(self._column("lidar_box", c, numeric=True) for c in _BOX_VALUES)
         rows = self._db.execute(
             f"SELECT lidar_pc_token, token, track_token, {columns} FROM lidar_box WHERE lidar_pc_token IN "
-            "(SELECT token FROM lidar_pc WHERE lidar_token = ? AND timestamp BETWEEN ? AND ?) "
-            "ORDER BY lidar_pc_token, token",
+            "(SELECT token FROM lidar_pc WHERE lidar_token = ? AND timestamp BETWEEN ? AND ?)",
             (bytes.fromhex(self.lidar.token), first, last)).fetchall()
         wanted = {bytes.fromhex(f.token) for f in frames}
-        rows = [r for r in rows if r[0] in wanted]
+        rows = sorted((r for r in rows if r[0] in wanted), key=lambda r: (r[0], r[1]))
         values = np.array([r[3:] for r in rows], dtype=np.float64).reshape(-1, len(_BOX_VALUES))
         bad = self._bad_box_values(values)
         tracks, track_problems = self._track_table

@@ -189,7 +189,7 @@ class EgoPoseRecord:
 class EgoPoseTable:
     """The usable `ego_pose` rows of a log as columns, in time order (one row per timestamp).
 
-    tokens (N,) bytes (the DB's BLOB tokens, numpy 'S' dtype); timestamps_us (N,) int64, strictly increasing;
+    tokens (N,) str: lowercase hex of the DB's BLOB tokens; timestamps_us (N,) int64, strictly increasing;
     xyz (N, 3) rear-axle position in the "global" frame, m; quaternions (N, 4) unit [w, x, y, z] of
     T_global_from_ego's rotation.
     """
@@ -208,7 +208,7 @@ class EgoPoseTable:
 
     def index_of(self, token: str) -> int:
         """Row of an ego_pose token (hex); KeyError if it is not a usable row."""
-        hits = np.flatnonzero(self.tokens == bytes.fromhex(token))
+        hits = np.flatnonzero(self.tokens == token)
         if not len(hits):
             raise KeyError(token)
         return int(hits[0])
@@ -268,8 +268,8 @@ class ImageRecord:
 
 @dataclass
 class ImageTable:
-    """The `image` rows of a log as columns, time order: tokens, camera_tokens (N,) bytes ('S' dtype),
-    timestamps_us (N,) int64, filenames (N,) bytes (relative to sensor_blobs/)."""
+    """The `image` rows of a log as columns, time order: tokens, camera_tokens (N,) str (lowercase hex),
+    timestamps_us (N,) int64 (-1 where NULL), filenames (N,) bytes (UTF-8, relative to sensor_blobs/)."""
 
     tokens: np.ndarray
     timestamps_us: np.ndarray

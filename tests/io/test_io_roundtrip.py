@@ -54,9 +54,9 @@ def test_layout_and_records_round_trip(built, db_path):
         assert len(log.ego_poses) == len(content.ego_poses)
         for k, want in enumerate(content.ego_poses):
             np.testing.assert_allclose(log.ego_poses.T_global_from_ego(k), want.T_global_from_ego, atol=1e-9)
-            assert log.ego_poses.tokens[k].hex() == want.token and log.ego_poses.timestamps_us[k] == want.timestamp_us
+            assert log.ego_poses.tokens[k] == want.token and log.ego_poses.timestamps_us[k] == want.timestamp_us
         images = sorted(content.images, key=lambda i: (i.timestamp_us, i.token))
-        assert [t.hex() for t in log.images.tokens] == [i.token for i in images]
+        assert log.images.tokens.tolist() == [i.token for i in images]
         assert log.images.timestamps_us.tolist() == [i.timestamp_us for i in images]
         assert [f.decode() for f in log.images.filenames] == [i.filename_jpg for i in images]
 
