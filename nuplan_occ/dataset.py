@@ -8,6 +8,7 @@ did not give (an imported release without its logs) are None, and `ego_to_global
 An unreadable manifest file is skipped with a warning and listed in `OccDataset.damaged` (its shard's
 frames fall back to the shard's previous commit, or are missing: `manifest_reader.DamagedFile`);
 `strict=True` refuses to open such a dataset instead.
+`sensors(i)`: frame i's camera images and calibration and the LiDAR-to-ego transform (`nuplan_occ.sensors`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from nuplan_occ.storage.manifest import MEMBER_FIELDS
 from nuplan_occ.storage.manifest_reader import ManifestIndex
 from nuplan_occ.storage.metadata import read_metadata
 from nuplan_occ.storage.reader import BlobRequest, ShardReader, decode_request, request_of
+from nuplan_occ.storage.sensors import SensorSidecars, frame_sensors
 from nuplan_occ.storage.token_index import TokenIndex
 
 
@@ -58,6 +60,7 @@ class OccDataset:
         self._tokens: TokenIndex | None = None
         self._manifest: pa.Table | None = None
         self._reader = ShardReader(root)
+        self._sensors = SensorSidecars(root)
 
     @property
     def manifest(self) -> pa.Table:
@@ -160,6 +163,19 @@ class OccDataset:
             if found:
                 return found[0]
         raise KeyError(f"{self.root}: no ok frame with token {token!r}")
+
+    @property
+    def has_sensors(self) -> bool:
+        """True when the dataset has sensor metadata (`sensors/`: written by the build, or added to an older
+        dataset by `nuplan_occ.sensors.add_sensors`)."""
+        return self._sensors.present
+
+    def sensors(self, i: int) -> dict:
+        """Frame i's sensor metadata (`storage.sensors.frame_sensors`; fields in `nuplan_occ.sensors`):
+        {"lidar_to_ego": (4, 4), "cameras": {channel: intrinsic, distortion, camera_to_ego, matched image ...}}.
+        MissingSensorsError (one line) when the dataset, or the frame's scene, has none."""
+        identity = self.identity(i)
+        return frame_sensors(self._sensors.rows(identity["log_name"], identity["scene_token"], identity["token"]))
 
     def close(self) -> None:
         """Close the shard handles of this process."""
