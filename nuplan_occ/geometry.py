@@ -42,6 +42,15 @@ def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def rotation_angle_deg(rotation: np.ndarray) -> float | np.ndarray:
+    """Angle in degrees, in [0, 180], of a 3x3 rotation (a float) or of each of a stack (..., 3, 3) (an array
+    of shape (...)): the angle of the axis-angle form, from the trace (cos = (trace - 1) / 2, clipped)."""
+    R = np.asarray(rotation, dtype=np.float64)
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return float(angle) if R.ndim == 2 else angle
+
+
 def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """4x4 transform from a 3x3 rotation and a (3,) translation."""
     T = np.eye(4)

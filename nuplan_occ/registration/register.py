@@ -37,7 +37,7 @@ from nuplan_occ.points.plane_normals import LazyNormals
 from nuplan_occ.registration.point_to_plane import normal_equations
 from nuplan_occ.registration.tracked_nearest import TrackedNearest
 from nuplan_occ.points.voxel_reduce import KeyIndex, accumulate, voxel_centroids, voxel_keys
-from nuplan_occ.geometry import invert_transform, make_transform, transform_points
+from nuplan_occ.geometry import invert_transform, make_transform, rotation_angle_deg, transform_points
 
 
 ANCHORS = ("fit", "first")
@@ -101,11 +101,6 @@ class RegistrationResult:
     fitness: np.ndarray
     rmse: np.ndarray
     reasons: list[str]
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle (degrees) of a 3x3 rotation."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def plane_conditioning(points: np.ndarray, normals: np.ndarray, center: np.ndarray) -> float:

@@ -10,10 +10,10 @@ from fbsa_world import GROUND, SENSOR_EGO, as_cloud, boxes_in_ego, make_sequence
 from nuplan_occ.points import PointInputError
 from nuplan_occ.aggregation.aggregate import aggregate_background
 from nuplan_occ.evaluation.step_metrics import ground_layering, pose_errors
-from nuplan_occ.registration.register import RegistrationParams, refine_poses, rotation_angle_deg
+from nuplan_occ.registration.register import RegistrationParams, refine_poses
 from nuplan_occ.aggregation.split import split_frame
 from nuplan_occ.points.voxel_reduce import voxel_centroids
-from nuplan_occ.geometry import invert_transform
+from nuplan_occ.geometry import invert_transform, rotation_angle_deg
 
 N_FRAMES = 40
 
