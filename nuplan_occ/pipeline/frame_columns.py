@@ -7,11 +7,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from nuplan_occ.geometry import invert_transform
+from nuplan_occ.geometry import invert_transform, rotation_angle_deg
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.io.types import Boxes
 from nuplan_occ.map_labels.map_align import MapAlignment
-from nuplan_occ.registration.register import rotation_angle_deg
 from nuplan_occ.voxel.frame_lookup import point_voxels
 
 MOVING_SPEED_MPS = 0.5
