@@ -33,7 +33,7 @@ from nuplan_occ.evaluation.datasets import N_IDS, confusion, pooled_metrics, wri
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.io.types import PACIFICA
-from nuplan_occ.labels import EMPTY, LABELS
+from nuplan_occ.labels import EMPTY, GENERIC_OBJECT, LABELS, VEHICLE
 from nuplan_occ.voxel.voxelize import box_voxel_indices, in_box
 
 TRUTH_RATE_HZ = 2.0
@@ -59,6 +59,8 @@ DEFINITIONS = {
     "below_ground": f"built occupied voxels lying entirely more than {BELOW_GROUND_VOXELS * 0.25} m below the bottom of the "
                     "lowest truth-occupied voxel of their column (the ground), summed over the evaluated frames",
     "inside_ego": "built occupied voxels whose centre lies inside the ego vehicle's box (PACIFICA, ego frame), summed",
+    "unboxed movers": "built voxels of an object class (vehicle .. generic_object) without an instance id (the unboxed-"
+                      "mover rule's), inside mask_lidar: their count per class and the share whose truth is that class",
 }
 
 
@@ -172,13 +174,16 @@ def evaluate_world(world: MatrixWorld, seconds: float, data_root: Path, built_ro
     now_centers, now_yaws, _, _ = true_boxes(world, seconds, np.asarray(truth_us, np.int64))
     ego_box = _ego_box_mask()
     total = np.zeros((N_IDS, N_IDS), np.int64)
+    unboxed = np.zeros((N_IDS, N_IDS), np.int64)
     counts = {"trail": 0, "floater": 0, "below_ground": 0, "inside_ego": 0, "occupied": 0}
     moving = speeds > MOVING_MPS
     for n, j in enumerate(matched):
         reference = truth.get(j, keys=("semantics", "mask_lidar"))
-        frame = built.get(built.index_of_token(reference["token"]), keys=("semantics",))
+        frame = built.get(built.index_of_token(reference["token"]), keys=("semantics", "instance"))
         pred, truth_sem = frame["semantics"], reference["semantics"]
         total += confusion(pred, truth_sem, reference["mask_lidar"])
+        unboxed += confusion(pred, truth_sem, reference["mask_lidar"] & (frame["instance"] == 0) & (pred >= VEHICLE)
+                             & (pred <= GENERIC_OBJECT))
         T = invert_transform(reference["ego_to_global"])
         built_occ = pred != EMPTY
         c_now, y_now = _to_ego(T, now_centers[n], now_yaws[n])
@@ -205,7 +210,10 @@ def evaluate_world(world: MatrixWorld, seconds: float, data_root: Path, built_ro
         per_class[LABELS.names[c]] = {"iou": pooled["per_class"][c], "precision": hit / pred_n if pred_n else float("nan"),
                                       "recall": hit / truth_n if truth_n else float("nan"),
                                       "truth_voxels": truth_n, "built_voxels": pred_n}
+    movers = {LABELS.names[c]: {"voxels": int(unboxed[:, c].sum()), "precision": float(unboxed[c, c] / unboxed[:, c].sum())}
+              for c in range(VEHICLE, GENERIC_OBJECT + 1) if unboxed[:, c].sum()}
     return {"frames": len(matched), "iou": pooled["iou"], "miou": pooled["miou"], "per_class": per_class,
+            "unboxed_movers": movers,
             "trail_voxels": counts["trail"], "floater_voxels": counts["floater"],
             "floater_share": counts["floater"] / max(counts["occupied"], 1), "below_ground_voxels": counts["below_ground"],
             "inside_ego_voxels": counts["inside_ego"], "occupied_voxels": counts["occupied"]}
@@ -271,9 +279,11 @@ def render_markdown(report: dict) -> str:
                          _fmt(q.get("miou")), str(q.get("trail_voxels", "-")),
                          f"{q.get('floater_voxels', '-')} ({100 * q.get('floater_share', float('nan')):.3f} %)",
                          str(q.get("below_ground_voxels", "-")), str(q.get("inside_ego_voxels", "-")),
+                         ", ".join(f"{c} {_fmt(m['precision'], 2)} ({m['voxels']})"
+                                   for c, m in q.get("unboxed_movers", {}).items()) or "-",
                          _fmt(b["cpu_seconds_per_frame"]), b["killed"] or ("ok" if b["ok"] else "failed")])
         lines += [_table(["world", "role", "imperfections", "frames", "IoU", "mIoU", "trail", "floater", "below ground",
-                          "inside ego", "CPU s/frame", "build"], rows), ""]
+                          "inside ego", "unboxed movers: precision (voxels)", "CPU s/frame", "build"], rows), ""]
         names = sorted({c for r in results if "quality" in r for c in r["quality"]["per_class"]})
         for figure in ("iou", "precision", "recall"):
             table = [[r["world"]["name"]] + [_fmt(r["quality"]["per_class"].get(c, {}).get(figure)) for c in names]
@@ -309,6 +319,8 @@ def main() -> None:
     parser.add_argument("--source", default=None, help="Build with the code of this git revision (or of this folder holding "
                         "a nuplan_occ package, labelled by its name) instead of this tree.")
     parser.add_argument("--report-only", action="store_true", help="Only rewrite the report from kept results.")
+    parser.add_argument("--evaluate-only", action="store_true", help="Score the kept builds again (no synthesis, no "
+                        "build): for figures added after a run.")
     args = parser.parse_args()
     cache = args.out.resolve() / "quality"
     chosen = [w for w in WORLDS if not args.worlds or w.name in args.worlds.split(",")]
@@ -319,7 +331,17 @@ def main() -> None:
         code, source = args.source, export_revision(args.source, cache / "src")
     else:
         code, source = code_label(here), here
-    if not args.report_only:
+    if args.evaluate_only:
+        for world in chosen:
+            path = cache / "results" / f"{world.name}_{args.seconds:g}s_{code}.json"
+            if path.exists():
+                result = json.loads(path.read_text())
+                out = cache / "build" / f"{world.name}_{args.seconds:g}s_{code}"
+                if result["build"]["ok"]:
+                    data_root = cache / "data" / f"{world.name}_{args.seconds:g}s"
+                    result["quality"] = evaluate_world(world, args.seconds, data_root, out)
+                    write_json(result, path)
+    elif not args.report_only:
         (cache / "results").mkdir(parents=True, exist_ok=True)
         for world in chosen:
             result = run_world(world, args.seconds, cache, code, source)
