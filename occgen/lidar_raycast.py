@@ -1,8 +1,9 @@
 """The ray-casting LiDAR baseline: 5 LiDARs cast against the occupied voxels of a semantic grid.
 
 Frames: rays, origins and returned points are in the ego frame (nuPlan rear axle, x forward, y left,
-z up, metres). Written sweeps use the ego frame as their "lidar" frame (identity ego_from_lidar, the
-format reference's recommendation, section 3.4), so `PointCloud.frame == "lidar"` holds ego coordinates.
+z up, metres). Written sweeps use the ego frame as their "lidar" frame (identity ego_from_lidar: a reader
+that applies the log's lidar extrinsic, as nuPlan's devkit does, then gets ego coordinates), so
+`PointCloud.frame == "lidar"` holds ego coordinates.
 
 The rig (`default_lidar_rig`, our own choice: nuPlan publishes no per-LiDAR extrinsics):
     lidar_info 0 top            (1.52,  0.00, 1.90) m, yaw   0 deg, 64 beams -25..+15 deg, 360 deg

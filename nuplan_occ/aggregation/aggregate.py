@@ -59,7 +59,7 @@ def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
 def within_boxes(points: np.ndarray, T_box_from_points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """(N,) bool: whether each point (N, 3) lies in [lower, upper) (3,) m of at least one of the K axis-aligned
     boxes, box k being given in its own frame with T_box_from_points (K, 4, 4) from the points' frame.
-    Compiled (fbsa.box_kernels): boxes are tried nearest first, and a point stops at the first box that holds
+    Compiled (nuplan_occ.points.box_kernels): boxes are tried nearest first, and a point stops at the first box that holds
     it or is too far from it to (same answer as trying every box)."""
     Ts = np.asarray(T_box_from_points, dtype=np.float64).reshape(-1, 4, 4)
     if not len(points) or not len(Ts):

@@ -1,5 +1,5 @@
 """Per-frame foreground/background split of a LiDAR sweep by oriented boxes (paper: "Separated Point Cloud
-Aggregation"; peers.md section 1, stage 3).
+Aggregation": points in a box follow the object, the rest are background).
 
 Frames: "ego" (nuPlan rear axle) for the sweep, the boxes and the sensor origin; "box" (origin at the box
 centre, x along the heading, z up) for foreground points. Units: metres.
@@ -33,7 +33,7 @@ def points_in_boxes(points: np.ndarray, boxes: Boxes, scale: float = 1.0, pad_m:
     points (N, 3) m in `boxes.frame`. A box's half-extents are sizes / 2 * scale + pad_m (pad_m: metres added on
     every side after scaling). Faces are inclusive (FACE_TOLERANCE_M). Boxes are upright (yaw only).
     Returns (N,) int64: the lowest index of a box containing the point, -1 if none.
-    Compiled (fbsa.box_kernels): each point tries the boxes in order, bounding rectangle first.
+    Compiled (nuplan_occ.points.box_kernels): each point tries the boxes in order, bounding rectangle first.
     """
     pts = _as_points(points, "points")
     out = np.full(len(pts), -1, dtype=np.int64)

@@ -1,4 +1,4 @@
-"""Statistical outlier filters for LiDAR points (algorithms.md section C).
+"""Statistical outlier filters for LiDAR points.
 
 Every function takes points (N, 3) in metres in any one frame and returns a bool keep mask (N,).
 Methods:
@@ -9,13 +9,8 @@ Methods:
   for isolation (origin: the sensor in the points' frame, one for all points or one per point, e.g. the
   per-point sensor origins of an aggregate).
 - "none": keeps every point.
-The default, "range", was chosen by measurement (tests/fbsa/test_fbsa_outliers.py: synthetic sweeps with 1 %
-uniform and 0.5 % near-sensor outliers; share of outliers caught / of real points lost, defaults k=8, 2.0, 3.0):
-  single sweeps:      range 0.84 / 0.0 %   knn 0.67 / 1.1 %   global 0.30 / 1.1 %
-  6-sweep aggregate:  range 0.89 / 0.01 %  knn 0.78 / 0.3 %   global 0.25 / 1.2 %
-"global" cuts far, valid structure and keeps the floaters near the sensor; it is kept as the paper's rule.
-k = 8 neighbours rather than Open3D's customary 20: on the same test both kNN methods catch more and lose
-fewer real points with 8 (range at k=20: 0.80 / 0.5 % and 0.87 / 0.03 %), and the search is ~2x cheaper.
+The build's default is "range"; "global" removes far, valid structure and keeps floaters near the sensor
+(docs/measurements.md compares the methods).
 """
 
 from __future__ import annotations

@@ -90,7 +90,7 @@ def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
 
 
 class LazyNormals:
-    """Normals of the points (m, 3) of `tree` (fbsa.knn.KdTree), each computed the first time it is asked for."""
+    """Normals of the points (m, 3) of `tree` (nuplan_occ.points.knn.KdTree), each computed the first time it is asked for."""
 
     def __init__(self, tree: KdTree, radius_m: float, max_nn: int):
         self.tree = tree

@@ -1,4 +1,4 @@
-"""Surface reconstruction (project issue 6): NKSR-lite (torch), Open3D Poisson, or raw points.
+"""Surface reconstruction: NKSR-lite (torch), Open3D Poisson, or raw points.
 
 Public API:
 - `reconstruct(points, sensor_origins, method="nksr", params=None, frame="scene") -> Surface`

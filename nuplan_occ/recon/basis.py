@@ -1,4 +1,4 @@
-"""Quadratic B-spline basis on a voxel lattice (reference A.3 / A.11.3).
+"""Quadratic B-spline basis on a voxel lattice (the basis of NKSR, Huang et al., CVPR 2023).
 
 Coordinates are level-0 voxel units u. A level of voxel size s (= 2**l) has basis centres at
 (i + 0.5) * s; the basis of voxel j is B((u - c_j) / s) = b(t_x) b(t_y) b(t_z) with the standard

@@ -1,4 +1,4 @@
-"""Scene-scale NKSR-lite: independent solves on xy chunks with overlap (reference A.9, A.11.5).
+"""Scene-scale NKSR-lite: independent solves on xy chunks with overlap.
 
 The level-0 lattice is anchored once for the whole input (a multiple of the coarsest voxel), so
 every chunk uses the same lattice. A chunk owns the cells whose xy index lies in its core
@@ -29,8 +29,8 @@ from nuplan_occ.recon.params import ReconParams
 CHUNK_SLACK = 1.05
 """Chunks may exceed chunk_size by this factor, so a 100.2 m tile splits into 2 x 2, not 3 x 3."""
 NORMAL_HALO_M = 1.0
-"""Neighbour points beyond a core's border taken into its normal estimates (m): on the 20 s scale
-scene 6 of 6.46 M normals differ by more than 1 degree from scene-wide estimates (bench notes)."""
+"""Neighbour points beyond a core's border taken into its normal estimates (m), so that normals near the
+border match the ones a scene-wide estimate would give."""
 
 
 def lattice_anchor(points: np.ndarray, params: ReconParams) -> np.ndarray:

@@ -1,5 +1,5 @@
 """Mesh extraction from an `ImplicitField`: marching cubes on the level-0 lattice, restricted to
-a band around the data and to a distance-to-points mask (reference A.7, A.8, A.11.5).
+a band around the data and to a distance-to-points mask.
 
 All coordinates here are level-0 voxel units relative to the field's anchor; the corner (i, j, k)
 of the lattice is at u = (i, j, k).

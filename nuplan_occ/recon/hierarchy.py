@@ -1,4 +1,4 @@
-"""Sparse voxel hierarchy over the input points (reference A.2 / A.11.2).
+"""Sparse voxel hierarchy over the input points (the structure of NKSR, Huang et al., CVPR 2023).
 
 Coordinates are integer voxel indices in level-0 units relative to a lattice anchor (see
 `nksr_lite`); level l has voxels of 2**l level-0 voxels. Level 0 holds the voxels that contain

@@ -1,12 +1,12 @@
-"""NKSR-lite: the neural-kernel surface solver without learned weights (reference A.11).
+"""NKSR-lite: the neural-kernel surface solver (NKSR, Huang et al., CVPR 2023) without learned weights.
 
 Units and frames: input points are metres in the caller's frame; the solver works in level-0
 voxel units u = (x - anchor) / voxel_size, where `anchor` is a lattice-aligned corner shared by
 all chunks of one reconstruction.
 
 Field: f(u) = sum_l sum_{j in level l} alpha_j B((u - c_j) / 2**l) with the quadratic B-spline
-basis of `basis` on the sparse hierarchy of `hierarchy` (feature factor beta = 0: the reference
-measured no gain from analytic features). Sign convention (reference A.11.4): f > 0 on the sensor
+basis of `basis` on the sparse hierarchy of `hierarchy` (feature factor beta = 0: no per-point
+features enter the kernel). Sign convention: f > 0 on the sensor
 side (free space), f < 0 behind the surface, grad f = the unit normal oriented toward the sensor,
 so f approximates a signed distance in voxel units near the data.
 
@@ -17,7 +17,7 @@ Energy (gradient fitting, per occupied level-0 voxel v with point count c_v):
   + lambda * alpha^T K alpha                                       ridge, K_ij = B(c_i - c_j)
 ybar are centroids (of half-size sub-voxels and of voxels), nbar_v the normalised mean normal and
 k_v = |mean normal| its consistency. The front-offset term is this module's addition to NKSR's
-energy (in the spirit of the reference's optional free-space term, A.11.4, but along the normal,
+energy (in the spirit of NKSR's optional free-space term, but along the normal,
 where the target t is the signed distance of a plane): without it the ridge term lets the field
 sag to slightly negative values beyond convex edges (a box seen from outside), and marching cubes
 then continues each face as a sheet up to the mask distance. Each voxel counts once, so the fit does not depend on the
@@ -42,8 +42,7 @@ from nuplan_occ.recon.params import ReconParams
 from nuplan_occ.recon.pcg import PCGResult, jacobi_pcg, to_torch_csr
 
 FRONT_OFFSETS = (1.0,)
-"""Distances t (level-0 voxels) of the front-offset constraints f(ybar + t nbar) = t. One voxel:
-on the synthetic street, (1, 2) lost 1 % recall at 0.25 m (thin gaps under cars, curbs)."""
+"""Distances t (level-0 voxels) of the front-offset constraints f(ybar + t nbar) = t."""
 
 
 @dataclass

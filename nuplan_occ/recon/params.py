@@ -19,16 +19,15 @@ class ReconParams:
 
     Shared by every method:
     - mask_distance: surface farther than this from every input point is removed (m). NKSR trims
-      at 2 voxels; this is the analytic distance-to-points version (reference A.8 / A.11.5).
+      at 2 voxels; this is the analytic distance-to-points version.
     - normal_knn: neighbours of the PCA normal estimate (`normals.estimate_normals`); normals are flipped
       to face each point's sensor origin.
     - normal_cell_m: one normal is estimated per cube of this edge, at its points' centroid, and shared by
-      them (0 = one per point); the cell sizes measured are in bench/report-scale.md's notes.
+      them (0 = one per point).
     - min_component_faces: connected mesh components with fewer faces are removed (pymeshlab).
     - max_hole_edges: holes bounded by at most this many edges are closed (pymeshlab); 0 = off.
     - threads: torch intra-op threads during the solve (restored afterwards) and Open3D Poisson
-      threads; 0 keeps torch's current setting. 1 is the default because on the shared 2-core
-      machine 2 torch threads made the PCG mat-vecs and dots 2-4x slower under load (spin-waits).
+      threads; 0 keeps torch's current setting.
 
     NKSR-lite ("nksr"):
     - voxel_size: finest hierarchy level (m); the output grid's voxel or finer.
@@ -38,22 +37,19 @@ class ReconParams:
     - value_weight / gradient_weight: w_v (zero value at the points) and w_g (gradient = the
       oriented normal at each voxel's centroid); both are per occupied level-0 voxel.
     - offset_weight: w_o of the front-offset constraint f(ybar + nbar) = 1 voxel (keeps the field
-      positive in free space beyond convex edges; see `nksr_lite`). 0.1 removed the face sheets
-      of a box (precision@0.25 0.70 -> 1.00) at no cost on the street scene.
+      positive in free space beyond convex edges; see `nksr_lite`).
       The value constraints of a level-0 voxel are the centroids of its occupied half-size
       sub-voxels (at most 8), weighted by their point counts (a Nystrom-style cap on N).
     - coarse_first: solve the coarsest level's coefficients alone first, then the finer levels' against what
       the coarse field leaves of the targets (two smaller systems; the joint system's cross-level products
-      are most of its assembly), instead of all levels in one system. The rows measured for each are in
-      bench/report-scale.md's notes.
-    - pcg_tolerance / pcg_max_iter: Jacobi-PCG stop rule ||r|| <= tol ||b||. 1e-3 rather than 1e-4:
-      on the 5 s bench scene it takes 58 % fewer iterations and changes 0.07 % of the occupied
-      0.25 m voxels of the background mesh.
+      are most of its assembly), instead of all levels in one system.
+    - pcg_tolerance / pcg_max_iter: Jacobi-PCG stop rule ||r|| <= tol ||b||, at most pcg_max_iter
+      iterations.
     - chunk_size / chunk_overlap: xy tiles (m) solved independently, with this margin of extra
-      points on every side (the margins measured: bench/report-scale.md's notes); chunk_size <= 0 disables
-      chunking. chunk_max_points: a chunk holding more
+      points on every side; chunk_size <= 0 disables chunking. chunk_max_points: a chunk holding more
       points (overlap included) is halved across its longer side until each part fits (0 = no budget):
       the solve's memory grows with its points, and a long scene fills its tiles densely.
+    docs/measurements.md (recon.params) holds the measurements behind these defaults.
 
     Poisson ("poisson", Open3D screened Poisson):
     - poisson_depth: octree depth; poisson_density_quantile: vertices whose Poisson density is

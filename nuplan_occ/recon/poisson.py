@@ -1,4 +1,4 @@
-"""Baseline: Open3D screened Poisson with density and distance trimming (reference A.12).
+"""Baseline: Open3D screened Poisson with density and distance trimming.
 
 Poisson is watertight and closes open outdoor scenes with a bubble, so low-density vertices
 (below the `density_quantile` of Poisson's per-vertex densities) and vertices farther than

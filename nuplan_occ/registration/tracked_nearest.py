@@ -1,8 +1,9 @@
 """Nearest-neighbour correspondences of a set of points that moves a little between queries (ICP).
 
 `TrackedNearest` answers, for each of n query points, "the nearest point of the target within `bound`"
-exactly as `tree.query(x, distance_upper_bound=bound)` (fbsa.knn.KdTree, as scipy's cKDTree) does (same index, up to exact distance ties),
-but asks the tree again only for the points whose answer can have changed since they were last asked.
+exactly as `tree.query(x, distance_upper_bound=bound)` (nuplan_occ.points.knn.KdTree, as scipy's cKDTree)
+does (same index, up to exact distance ties), but asks the tree again only for the points whose answer can
+have changed since they were last asked.
 Each point remembers where it was asked (`anchor`), its nearest target point there and `clear`: a radius
 around the anchor inside which no other target point lies (the second-nearest distance, or the search
 radius when there was none). After the point moved by delta from its anchor, every other target point is
@@ -50,9 +51,10 @@ def _remembered(points: np.ndarray, anchor: np.ndarray, nearest: np.ndarray, cle
 class TrackedNearest:
     """Exact nearest target point within a bound, for n query points that move between calls.
 
-    tree: kd-tree over the target points (m, 3) (fbsa.knn.KdTree); n: number of query points (the same points every call);
-    margin_m: extra search radius of each tree query beyond the bound asked for, so a point can move this far
-    before its answer expires. `queried` counts the points sent to the tree so far."""
+    tree: kd-tree over the target points (m, 3) (nuplan_occ.points.knn.KdTree); n: number of query points
+    (the same points every call); margin_m: extra search radius of each tree query beyond the bound asked
+    for, so a point can move this far before its answer expires. `queried` counts the points sent to the tree
+    so far."""
 
     def __init__(self, tree: KdTree, n: int, margin_m: float):
         self.tree = tree

@@ -58,7 +58,7 @@ def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], t
 def snapped_static_poses(scene, poses: np.ndarray, static: dict[str, tuple[list[int], np.ndarray, np.ndarray]],
                          params: BoxSnapParams) -> dict[str, np.ndarray]:
     """track -> (4,) global pose (x, y, z, yaw) of each static track's box moved in x, y onto the points near
-    it in its sweeps (fbsa.box_snap; points taken to the global frame with the refined poses).
+    it in its sweeps (nuplan_occ.tracks.box_snap; points taken to the global frame with the refined poses).
     static: track -> (its sweep positions, its (4,) global pose, its box size (3,)). One pass over the
     sweeps, each read once; only the points within the snap's height band (BoxSnapParams.z_band_m) are kept."""
     gathered: dict[str, list[np.ndarray]] = {track: [] for track in static}
