@@ -262,7 +262,7 @@ def _render_open(scale: dict[str, Any]) -> list[str]:
               "(~1 ms of CPU per file here), read one at a time (reader threads kept ~1.5 GB of freed footer memory "
               "in their malloc arenas at 19 k files); compacting makes opening cost the rows alone.", "",
               "Before (the reader of 4602734: index columns read as strings, tokens read at open, `len()` reading "
-              "the whole manifest). Issue #17's bench: 186 k rows in 1,000 fragments 7.33 s, compacted 0.85 s; 3.6 M "
+              "the whole manifest), measured before the change: 186 k rows in 1,000 fragments 7.33 s, compacted 0.85 s; 3.6 M "
               "rows compacted failed (ArrowMemoryError under the 4 GB cap). Measured since in fresh processes started "
               "from a shell, no cap, the same simulated rows: 3.6 M rows compacted 3.5 to 7.7 s (2.4 to 5.2 s CPU), 1.5 GB "
               "at open and 6.4 GB after the first frame read (`len()`), token lookup 24 ms, frame identity 400 ms; in "
@@ -282,7 +282,7 @@ def render_markdown(report: dict[str, Any]) -> str:
             row = c[str(n)]
             lines.append(f"| {row['scenes']:,} | {row['rows']:,} | {row['median_s']:.4f} | {row['max_s']:.4f} |")
         lines += ["", f"Ratio 19 k / 1 k: **{c['ratio_19k_to_1k']:.2f}** (target <= 1.5). Before (read, merge and "
-                  "rewrite manifest.parquet; issue #17): 1.1 s at 190 k rows, 3.8 s at 760 k rows.", "",
+                  "rewrite manifest.parquet): 1.1 s at 190 k rows, 3.8 s at 760 k rows.", "",
                   *_render_open(scale)]
     w = report.get("work")
     if w:

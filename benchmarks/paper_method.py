@@ -1,5 +1,5 @@
-"""The paper's (UniScenev2 / Nuplan-Occ) voxelization and BEV labeling, re-implemented to compare
-against ours on the same input (peers.md section 1, stages 7-9 and 12). Pure numpy.
+"""The paper's (UniScenev2 / Nuplan-Occ) voxelization and BEV labeling, re-implemented from its description
+to compare against ours on the same input. Pure numpy.
 
 - paper_voxelize_vertices: only mesh VERTICES are voxelized, after one midpoint subdivision of the
   mesh; each voxel takes the majority label of its vertices. Triangles larger than a voxel leave holes.

@@ -275,7 +275,7 @@ def bench_kiss_icp(data_root: Path, sweeps: int, threads: tuple[int, ...] = (1, 
 
 
 PICTURE_SCENE_SECONDS = 20.0
-"""The scene length whose builds the report's picture shows (the issue's yardstick)."""
+"""The scene length whose builds the report's picture shows (the length the targets are set for)."""
 PICTURE_NAME = "report-scale.png"
 
 
@@ -302,7 +302,7 @@ def render_scale_markdown(report: dict, picture: bool = False) -> str:
                     key=lambda s: [*STAGE_ORDER, s].index(s))
     parts = [f"# nuplan-occ scale bench ({report['software']}, {report['machine']}, {report['cpus']} cpus)", "",
              f"Synthetic `{report['preset']}` logs (seed {report['seed']}), one scene spanning the log, one worker on one "
-             "thread, built from scratch. Targets (issue #16): <= 1.0 s per frame per core and peak RSS <= 6 GB "
+             "thread, built from scratch. Targets: <= 1.0 s per frame per core and peak RSS <= 6 GB "
              "for the 20 s scene (<= 1.3x the 5 s scene's).", "",
              *([f"![CPU seconds per frame by stage and peak RSS of every {PICTURE_SCENE_SECONDS:g} s build]"
                 f"({PICTURE_NAME})", ""] if picture else []),
@@ -371,14 +371,15 @@ STAGE_ORDER = ["start", "load", "split", "filter", "register", "track", "lidar_r
                "support", "label_map", "voxelize", "label", "visibility", "write", "done"]
 
 RECORDED_BASELINE = {
-    "text": "Issue #16 (filed 2026-12-01 against commit 4ae3972): 10 s `city` scene (100 output frames, "
+    "text": "Measured 2026-12-01 on commit 4ae3972: 10 s `city` scene (100 output frames, "
             "135 k points per sweep, 107 agents), `nuplan-occ build --workers 1`: wall 1315 s = 13.2 s per frame "
             "on one core (visibility 4.0, aggregate 2.8, voxelize 2.1, register 1.2, filter 0.6, reconstruct 0.6, "
             "track 0.5, write 0.4, label 0.3 s per frame); peak RSS 13.0 GB; IoU 0.942, mIoU 0.627 (traffic_cone "
             "0.00, czone_sign 0.28, vehicle 0.43, pedestrian 0.53).",
     "seconds_per_frame": 13.2, "peak_rss_mb": 13000.0, "scene_seconds": 10.0,
 }
-"""The issue's figures for the code before this work, kept with their date where a rerun is too heavy."""
+"""The figures of the code before the scale work (commit 4ae3972), kept with their date where a rerun is too
+heavy."""
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -2,7 +2,7 @@
 
 One bar per build of the chosen scene length that recorded CPU seconds per stage, in the order the bench ran
 them (oldest at the top; a run builds its new code first, then its baseline), split
-into its stages' CPU seconds per output frame, beside that build's peak RSS; the issue's targets are
+into its stages' CPU seconds per output frame, beside that build's peak RSS; the scale targets are
 drawn as lines (1.0 s per frame, 6 GB).
 """
 

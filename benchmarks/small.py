@@ -215,23 +215,18 @@ def summarize_metrics(metrics: list[dict], trails: list[int], holes: list[float]
 def bench_fbsa(data_root: Path, out: Path) -> dict[str, Any]:
     """Pose error of logged, refined and map-aligned poses (refined, corrected by the scene's alignment of
     the map to the LiDAR's paint, as written to the manifest) against the true poses (synthetic truth), per
-    sweep; runs only the stages up to registration (cached by `out`'s work folder)."""
+    sweep; runs only the stages up to the map alignment (cached by `out`'s work folder)."""
     from nuplan_occ.evaluation.step_metrics import pose_errors
-    from nuplan_occ.io.maps import LABEL_LAYERS, NuplanMap
     from nuplan_occ.stages import PIPELINE
-    from nuplan_occ.stages.label import align_map
 
     params = default_params(PIPELINE)
     tasks = plan_tasks(resolve_logs(data_root), data_root, data_root / "maps", str(out), default_work_root(str(out)), params)
     truth = open_dataset(str(data_root / "truth"))
     logged, refined, aligned, true, accepted = [], [], [], [], []
     for task in tasks:
-        artifacts = run_stages(task, PIPELINE, ("scene", "registration"))
-        scene, registration = artifacts["scene"], artifacts["registration"]
-        correction = np.eye(4)
-        if scene.map_path:
-            layers = NuplanMap(scene.map_path).layers_in_window(registration.poses[0][:2, 3], 150.0, LABEL_LAYERS)
-            correction = align_map(scene, registration.poses, layers, params["label"])[0].correction
+        artifacts = run_stages(task, PIPELINE, ("scene", "registration", "map_alignment"))
+        scene, registration, alignment = artifacts["scene"], artifacts["registration"], artifacts["map_alignment"]
+        correction = alignment.correction if alignment is not None else np.eye(4)
         for position, sweep in enumerate(scene.sweeps):
             logged.append(sweep.logged_pose)
             refined.append(registration.poses[position])
@@ -249,11 +244,11 @@ def bench_fbsa(data_root: Path, out: Path) -> dict[str, Any]:
 
 
 NOISY_LOG_OPTIONS = {"pose_noise_xy": 0.3, "pose_noise_yaw_deg": 1.0, "drift_z": 0.12}
-"""The registration target's condition (issue: logged-pose noise 0.3 m / 1 deg plus slow z drift)."""
+"""The condition registration is held to: logged-pose noise 0.3 m / 1 deg plus a slow z drift."""
 
 
 def bench_fbsa_noisy(out_dir: Path, seconds: float) -> dict[str, Any]:
-    """bench_fbsa on a log synthesized with the issue's pose noise (same world and seed)."""
+    """bench_fbsa on a log synthesized with NOISY_LOG_OPTIONS' pose noise (same world and seed)."""
     from nuplan_occ.synth.generate import synthesize
     from nuplan_occ.synth.presets import SynthOptions
 
@@ -310,7 +305,7 @@ def _table(header: list[str], rows: list[list[Any]]) -> str:
 def render_markdown(report: dict) -> str:
     """The report as Markdown tables."""
     parts = [f"# nuplan-occ bench ({report['software']}, {report['machine']})", "",
-             f"Synthetic `small` log, seed {report['seed']}, {report['seconds']} s; targets from the issues in brackets.", ""]
+             f"Synthetic `small` log, seed {report['seed']}, {report['seconds']} s; targets in brackets.", ""]
     if "build" in report:
         b = report["build"]
         parts += ["## Build", "", _table(
