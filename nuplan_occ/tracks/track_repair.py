@@ -203,3 +203,25 @@ def empty_tracks(box_frame_points: dict[str, list[np.ndarray]], heights: dict[st
         if above < min_points:
             empty.add(track)
     return empty
+
+
+def fitted_sizes(box_frame_points: dict[str, list[np.ndarray]], sizes: dict[str, np.ndarray], margin_m: float,
+                 floor_clearance_m: float = 0.3, quantile: float = 0.99, min_points: int = 20) -> dict[str, np.ndarray]:
+    """track -> its box size (3,) grown, symmetrically about the box centre, to hold its points: the `quantile`
+    of their |x|, |y| and z (points within floor_clearance_m of the box's bottom left out: the ground), each
+    growth at most margin_m per side. box_frame_points: track -> its points per sweep gathered in its box grown
+    by margin_m (box frame, z = 0 at the centre); sizes: track -> [length, width, height] m. Tracks with fewer
+    than min_points such points, or whose points fit, are left out."""
+    grown = {}
+    for track, views in box_frame_points.items():
+        size = np.asarray(sizes[track], np.float64)
+        points = np.vstack([p for p in views if len(p)] or [np.zeros((0, 3))])
+        body = points[points[:, 2] > -size[2] / 2 + floor_clearance_m]
+        if len(body) < min_points:
+            continue
+        reach = np.array([np.quantile(np.abs(body[:, 0]), quantile), np.quantile(np.abs(body[:, 1]), quantile),
+                          np.quantile(body[:, 2], quantile)])
+        new = size + 2.0 * np.clip(reach - size / 2, 0.0, margin_m)
+        if np.any(new > size):
+            grown[track] = new
+    return grown
