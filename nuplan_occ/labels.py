@@ -1,4 +1,4 @@
-"""Semantic label map (ids, names, colors) read from `schemas/labels.json`."""
+"""Semantic label map (ids, names, colors) read from `nuplan_occ/schemas/labels.json`."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""Label maps from a release's ids to ours: the named maps of `schemas/release_labels.json`, our own ids
-("nuplan-occ", for files our `export --format uniscene` wrote) or a FILE.json following
-`schemas/release_label_map.json`."""
+"""Label maps from a release's ids to ours: the named maps of `nuplan_occ/schemas/release_labels.json`, our
+own ids ("nuplan-occ", for files our `export --format uniscene` wrote) or a FILE.json following
+`nuplan_occ/schemas/release_label_map.json`."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ class ReleaseLabelMap:
     classes: dict[int, tuple[str, int]]
 
     def to_dict(self) -> dict:
-        """As recorded in dataset.json (schemas/release_label_map.json layout)."""
+        """As recorded in dataset.json (nuplan_occ/schemas/release_label_map.json layout)."""
         return {"name": self.name, "classes": [{"id": i, "name": n, "ours": o}
                                                for i, (n, o) in sorted(self.classes.items())]}
 
