@@ -24,8 +24,10 @@ Every value is checked where it enters, and a bad one costs only what it touches
 
 from __future__ import annotations
 
+import os
 import re
 import sqlite3
+import threading
 from functools import cached_property
 from pathlib import Path, PurePosixPath
 from urllib.parse import quote
@@ -623,6 +625,26 @@ class NuplanLog:
     def load_points(self, frame: LidarFrame) -> PointCloud:
         """The frame's usable points in the "lidar" frame; errors as load_sweep."""
         return self.load_sweep(frame)[0]
+
+
+_open_logs: dict[str, tuple[tuple, NuplanLog]] = {}
+"""The log this worker (process and thread) has open: its identity key and the reader."""
+
+
+def open_log(db_path: str, sensor_root: str) -> NuplanLog:
+    """The reader of a log DB, reused while the same process and thread asks for the same unchanged file
+    (path, sensor root, inode, size and mtime); the previously open log is closed when another is asked for."""
+    st = os.stat(db_path)
+    key = (db_path, sensor_root, st.st_ino, st.st_size, st.st_mtime_ns)
+    slot = f"{os.getpid()}:{threading.get_ident()}"
+    held = _open_logs.get(slot)
+    if held is not None and held[0] == key:
+        return held[1]
+    if held is not None:
+        held[1].close()
+    log = NuplanLog(db_path, sensor_root)
+    _open_logs[slot] = (key, log)
+    return log
 
 
 def points_to_ego(cloud: PointCloud, log: NuplanLog) -> PointCloud:

@@ -4,7 +4,7 @@ with context sweeps of the same log around it (aggregated, not written).
 Inputs: the scene task. Outputs: `scene` (SceneData). Not cached: reading is cheaper than storing. The
 sweeps' points are spilled to an unnamed file of the scene's work folder as they are read and read back
 per sweep by the stages (nuplan_occ.pipeline.spilled_clouds), so no stage holds the whole scene's clouds.
-A worker keeps its last log open (`open_log`), so the scenes of one log it builds in a row read the DB once.
+A worker keeps its last log open (`nuplan_occ.io.reader.open_log`), so the scenes of one log it builds in a row read the DB once.
 A sweep whose PCD is missing, corrupt, empty or outside sensor_blobs, whose pose the log cannot give
 (PoseGapError), or one of whose boxes is bad is kept with its failure reason (one line); the scene goes on
 without it. A scene none of whose output sweeps loaded fails at once, naming the blobs' folder and count.
@@ -15,7 +15,6 @@ qa_map_status carries it).
 from __future__ import annotations
 
 import os
-import threading
 from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 
 from nuplan_occ.io.errors import MapError, MissingBlobError, NuplanFormatError, PoseGapError
 from nuplan_occ.io.maps import find_map, usable_map
-from nuplan_occ.io.reader import NuplanLog, SceneBoxes
+from nuplan_occ.io.reader import NuplanLog, SceneBoxes, open_log
 from nuplan_occ.io.types import Boxes, LidarFrame, PointCloud
 from nuplan_occ.pipeline.scene import SceneData, SceneTask, Sweep, output_slots
 from nuplan_occ.pipeline.params import param
@@ -44,26 +43,6 @@ class LoadParams:
     def __post_init__(self) -> None:
         if self.rate_hz > self.sweep_rate_hz:
             raise ValueError(f"rate_hz {self.rate_hz:g} exceeds the sweep rate {self.sweep_rate_hz:g} Hz")
-
-
-_open: dict[str, tuple[tuple, NuplanLog]] = {}
-"""The log this worker (process and thread) has open: its identity key and the reader."""
-
-
-def open_log(db_path: str, sensor_root: str) -> NuplanLog:
-    """The reader of a log DB, reused while the same process and thread asks for the same unchanged file
-    (path, sensor root, inode, size and mtime); the previously open log is closed when another is asked for."""
-    st = os.stat(db_path)
-    key = (db_path, sensor_root, st.st_ino, st.st_size, st.st_mtime_ns)
-    slot = f"{os.getpid()}:{threading.get_ident()}"
-    held = _open.get(slot)
-    if held is not None and held[0] == key:
-        return held[1]
-    if held is not None:
-        held[1].close()
-    log = NuplanLog(db_path, sensor_root)
-    _open[slot] = (key, log)
-    return log
 
 
 def context_frames(log_frames: list[LidarFrame], own: list[LidarFrame], seconds: float, stride: int) -> list[LidarFrame]:

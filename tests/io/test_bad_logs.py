@@ -16,7 +16,7 @@ import pytest
 
 from nuplan_occ.io.errors import DatabaseError, MissingBlobError, PointCloudError
 from nuplan_occ.io.pcd import MAX_POINTS, encode_pcd, read_pcd
-from nuplan_occ.io.reader import POSE_EDGE_LIMIT_US, NuplanLog
+from nuplan_occ.io.reader import POSE_EDGE_LIMIT_US, NuplanLog, open_log
 from nuplan_occ.io.types import PointCloud
 from nuplan_occ.pipeline.build import plan_tasks
 from nuplan_occ.stages import load
@@ -267,9 +267,9 @@ def test_oversized_point_count_is_refused_before_allocating(copy):
 def test_loading_scenes_never_writes_the_users_db_and_reuses_one_open_log(copy):
     digest = hashlib.sha256(copy.db.read_bytes()).hexdigest()
     first = copy.load_scene("scene-0001")
-    log = load.open_log(str(copy.db), str(copy.blobs))
+    log = open_log(str(copy.db), str(copy.blobs))
     second = copy.load_scene("scene-0002")
-    assert load.open_log(str(copy.db), str(copy.blobs)) is log
+    assert open_log(str(copy.db), str(copy.blobs)) is log
     with NuplanLog(copy.db, copy.blobs) as fresh:
         for sweep in [*first.sweeps, *second.sweeps]:
             frame = next(f for f in fresh.frames if f.token == sweep.token)
