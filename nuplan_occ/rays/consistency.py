@@ -50,6 +50,13 @@ AGREE, EARLY, HOLE, OTHER = 0, 1, 2, 3
 NOT_SCORED = -1
 """Outcome code of a return outside the grid or within a voxel of the origin."""
 
+FLAG_RULES = {
+    "rays_early": ("early", ">", 0.10),
+    "rays_holes": ("hole", ">", 0.02),
+    "rays_disagree": ("agree", "<", 0.85),
+}
+"""Frame flag rules: name -> (RayConsistency field, comparison, threshold); shares of the scored returns."""
+
 
 @dataclass(frozen=True)
 class RayConsistency:
@@ -148,6 +155,17 @@ def ray_outcomes(semantics: np.ndarray, origin: np.ndarray, returns: np.ndarray,
     outcome[index] = codes
     depth_error[index[hit]] = np.where(at_return[hit], 0.0, ahead[hit])
     return outcome, depth_error
+
+
+def broken_rules(figures: dict[str, float]) -> list[str]:
+    """Names of the FLAG_RULES a frame's figures (field -> value; missing or NaN: not judged) break."""
+    broken = []
+    for name, (key, comparison, threshold) in FLAG_RULES.items():
+        value = figures.get(key)
+        if value is not None and np.isfinite(value) and ((value > threshold) if comparison == ">" else
+                                                         (value < threshold)):
+            broken.append(name)
+    return broken
 
 
 def summarize(outcome: np.ndarray, depth_error: np.ndarray) -> RayConsistency:

@@ -11,6 +11,8 @@ from typing import Callable
 
 import numpy as np
 
+from nuplan_occ.rays.consistency import FLAG_RULES
+
 POSE_CORRECTION_MAX_M = 0.5
 """A frame whose registration moved it further than this from the logged pose (m) is flagged."""
 
@@ -68,6 +70,20 @@ def _unlabeled_boxes(c: Columns, ok: np.ndarray) -> np.ndarray:
     return ok & (c["qa_boxes_with_points"] > c["qa_boxes_labeled"])
 
 
+def _ray_rule(name: str) -> Rule:
+    """The report's form of a ray-consistency flag rule (`rays.consistency.FLAG_RULES`, `nuplan-occ qa`)."""
+    field, comparison, threshold = FLAG_RULES[name]
+    column = f"qa_ray_{field}"
+    what = {"early": "of a nearby sweep's LiDAR returns end more than 1 m early in the grid (floaters, ghosts, "
+                     "doubled surfaces, trails)",
+            "hole": "of a nearby sweep's LiDAR returns meet no occupied voxel where they hit a surface (holes)",
+            "agree": "of a nearby sweep's LiDAR returns agree with the grid (the first occupied voxel on the ray "
+                     "within a voxel of the return)"}
+    title = f"{'more' if comparison == '>' else 'less'} than {threshold:.0%} {what[field]} ({column}; nuplan-occ qa)"
+    return Rule(name, title, (column,), lambda c, ok: ok & ((c[column] > threshold) if comparison == ">"
+                                                           else (c[column] < threshold)))
+
+
 RULES = (
     Rule("failed", "frame failed to build (its reason is listed)", ("status",), _failed),
     Rule("pose", f"registration moved the frame more than {POSE_CORRECTION_MAX_M} m from its logged pose "
@@ -82,6 +98,7 @@ RULES = (
          "median (qa_lidar_observed_fraction)", ("qa_lidar_observed_fraction",), _low_observed),
     Rule("unlabeled_boxes", "a box with LiDAR points got no voxel (qa_boxes_with_points > qa_boxes_labeled)",
          ("qa_boxes_with_points", "qa_boxes_labeled"), _unlabeled_boxes),
+    *(_ray_rule(name) for name in FLAG_RULES),
 )
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from nuplan_occ.evaluation.ray_qa import sidecar_columns
 from nuplan_occ.report.flags import Columns
 from nuplan_occ.storage import MEMBERS
 from nuplan_occ.storage.manifest_reader import ManifestIndex
@@ -35,9 +36,9 @@ def column_to_numpy(column: pa.ChunkedArray) -> np.ndarray:
 
 @dataclass
 class BuildFrames:
-    """columns: identity columns (as strings / float), every `qa_*` column, `nbytes` (stored bytes of the
-    frame, all members); poses (N, 4, 4) T_global_from_ego; class_hist (N, K) voxels per label id; ok (N,)
-    bool; scenes: (start, stop) row ranges, one per scene, in (log, scene name) order."""
+    """columns: identity columns (as strings / float), every `qa_*` column (the ray-consistency ones from
+    `nuplan-occ qa`'s sidecar files when the manifest lacks them), `nbytes` (stored bytes of the frame, all
+    members); poses (N, 4, 4) T_global_from_ego; class_hist (N, K) voxels per label id; ok (N,) bool; scenes: (start, stop) row ranges, one per scene, in (log, scene name) order."""
 
     columns: Columns
     poses: np.ndarray
@@ -74,13 +75,15 @@ def load_frames(root: str) -> BuildFrames:
     """Every row of the dataset at `root`, ordered by (log, scene name, timestamp)."""
     index = ManifestIndex(root)
     available = index.schema.names
-    wanted = [*IDENTITY, "ego_to_global", "class_hist", *(f"{m}_nbytes" for m in MEMBERS),
+    wanted = [*IDENTITY, "ego_to_global", "class_hist", "commit_id", *(f"{m}_nbytes" for m in MEMBERS),
               *(n for n in available if n.startswith("qa_"))]
     table = index.table([n for n in wanted if n in available])
     table = table.sort_by([("log", "ascending"), ("scene_name", "ascending"), ("timestamp_us", "ascending")])
     names = [*IDENTITY, *sorted(n for n in table.column_names if n.startswith("qa_"))]
     columns = {name: column_to_numpy(table[name]) for name in names}
     columns["nbytes"] = _member_bytes(table)
+    if "qa_ray_agree" not in columns and "commit_id" in table.column_names:  # `nuplan-occ qa`'s files, if any
+        columns.update(sidecar_columns(root, columns["token"], column_to_numpy(table["commit_id"])))
     n = table.num_rows
     poses = table["ego_to_global"].combine_chunks().values.to_numpy(zero_copy_only=False).reshape(n, 4, 4)
     hist = table["class_hist"].combine_chunks()

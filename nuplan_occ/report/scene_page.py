@@ -14,6 +14,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from nuplan_occ.rays.consistency import FLAG_RULES
 from nuplan_occ.report import html as h
 from nuplan_occ.report.flags import OBSERVED_FRACTION_OF_MEDIAN, POSE_CORRECTION_MAX_M, RULES, FlagResult
 from nuplan_occ.report.frames import BuildFrames
@@ -108,6 +109,8 @@ def render_scene(scene: SceneSummary, frames: BuildFrames, flags: FlagResult, ds
         Series("LiDAR observed\nfraction", col("qa_lidar_observed_fraction"),
                (OBSERVED_FRACTION_OF_MEDIAN * ctx.observed_median, "flag")),
         Series("occupied voxels", col("qa_occupied_voxels")),
+        Series("rays agreeing\n(share)", col("qa_ray_agree"), (FLAG_RULES["rays_disagree"][2], "flag")),
+        Series("rays ending\nearly (share)", col("qa_ray_early"), (FLAG_RULES["rays_early"][2], "flag")),
     ], ~ok, flagged, folder / "timeline.png")
     plot_class_histogram(frames.class_hist[rows][ok].sum(axis=0) if ok.any() else np.zeros(1, np.int64),
                          ctx.names, ctx.colors, folder / "classes.png")

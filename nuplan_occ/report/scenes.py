@@ -64,6 +64,8 @@ FIGURES = (
     Figure("occupied", "occupied voxels (mean)", ("qa_occupied_voxels",),
            lambda c, ok: _mean(c["qa_occupied_voxels"][ok])),
     Figure("unlabeled", "boxes w/o voxels (sum)", ("qa_boxes_with_points", "qa_boxes_labeled"), _unlabeled_sum),
+    Figure("rays_agree", "rays agreeing (median)", ("qa_ray_agree",), lambda c, ok: _median(c["qa_ray_agree"][ok])),
+    Figure("rays_early", "rays early (median)", ("qa_ray_early",), lambda c, ok: _median(c["qa_ray_early"][ok])),
 )
 
 

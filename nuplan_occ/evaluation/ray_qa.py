@@ -1,0 +1,261 @@
+"""`nuplan-occ qa`: ray consistency (`nuplan_occ.rays.consistency`) of every ok frame of a built dataset,
+scored against a LiDAR sweep of its log, written beside the dataset without touching what is published.
+
+Which sweep: for each output frame, the loaded sweep of its scene nearest in time that is not an output
+frame (the 20 Hz sweeps between 10 Hz frames; ties go to the later one); in a build whose output rate is
+the sweep rate, the nearest other loaded sweep. Sweeps more than MAX_SWEEP_DT_S away are not used. Each row
+says which sweep it used and whether that sweep's points went into the background the grid was built from
+(`qa_ray_sweep_in_background`: the filter stage takes the background from every output sweep and every
+n-th sweep in phase with them, so with the defaults the sweeps between frames of a scene of at least 40
+sweeps are held out of the background; their object points are aggregated all the same).
+
+Poses: the build's refined poses (its `register` stage's cache entry, kept by the default work policy) when the
+work folder still holds them for the same inputs and params, else the log's poses (`qa_ray_poses`: refined |
+logged). The sweep's returns and the merged LiDAR origin are moved into the frame's ego frame by
+T_frame_from_sweep = inv(pose_frame) @ pose_sweep.
+
+Output: one Parquet file per scene, OUT/qa/ray_consistency/<log>/<scene>.parquet, written whole (atomic), a row
+per ok frame keyed by `token` (with log, scene_name, scene_token, frame_index and the manifest row's
+commit_id, so a rebuilt scene's stale QA is recognised and recomputed). DuckDB reads them as one table:
+    SELECT * FROM read_parquet('OUT/qa/ray_consistency/**/*.parquet')
+A frame that cannot be scored (its sweep failed to load, none near enough) has a row with `qa_ray_problem`
+and null figures. `qa_ray_flags` names the flag rules a frame breaks (`rays.consistency.FLAG_RULES`); a scene is
+flagged when more than SCENE_RULE_SHARE of its scored frames are.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from nuplan_occ.dataset import open_dataset
+from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.pipeline.cache import StageCache
+from nuplan_occ.pipeline.scene import SceneData, SceneTask
+from nuplan_occ.rays.consistency import broken_rules, ray_consistency
+from nuplan_occ.storage.fsio import arrow_filesystem, atomic_put, resolve
+from nuplan_occ.storage.manifest import to_parquet_bytes
+
+QA_FOLDER = "qa/ray_consistency"
+"""Where the sidecar files go, under the dataset root."""
+
+MAX_SWEEP_DT_S = 0.2
+"""A frame is scored against a sweep at most this far from it in time (s)."""
+
+MAX_RAYS = 20000
+"""Returns scored per frame by default (evenly strided; `rays.consistency`)."""
+
+FIGURES = {"qa_ray_agree": "agree", "qa_ray_early": "early", "qa_ray_hole": "hole", "qa_ray_other": "other",
+           "qa_ray_depth_error_p90_m": "depth_error_p90_m", "qa_ray_depth_error_p99_m": "depth_error_p99_m"}
+"""The figure columns and the `RayConsistency` field each holds."""
+
+
+SCENE_RULE_SHARE = 0.2
+"""A scene is flagged when more than this share of its scored frames is flagged."""
+
+SCHEMA = pa.schema([
+    ("token", pa.string()), ("log", pa.string()), ("scene_name", pa.string()), ("scene_token", pa.string()),
+    ("frame_index", pa.int64()), ("commit_id", pa.string()), ("qa_ray_sweep_token", pa.string()),
+    ("qa_ray_sweep_dt_s", pa.float64()), ("qa_ray_sweep_in_background", pa.bool_()), ("qa_ray_poses", pa.string()),
+    ("qa_ray_returns", pa.int64()), ("qa_ray_scored", pa.int64()), *((name, pa.float64()) for name in FIGURES),
+    ("qa_ray_flags", pa.string()), ("qa_ray_problem", pa.string()),
+])
+"""Columns of a sidecar file."""
+
+
+def scoring_sweep(scene: SceneData, position: int) -> int | None:
+    """Position of the loaded sweep the output frame at `position` is scored against (module docstring), or
+    None when no loaded sweep lies within MAX_SWEEP_DT_S."""
+    between = [i for i, s in enumerate(scene.sweeps) if s.has_cloud and not s.is_output]
+    candidates = between or [i for i, s in enumerate(scene.sweeps) if s.has_cloud and i != position]
+    t = scene.sweeps[position].timestamp_us
+    best = min(candidates, key=lambda i: (abs(scene.sweeps[i].timestamp_us - t), -scene.sweeps[i].timestamp_us),
+               default=None)
+    if best is None or abs(scene.sweeps[best].timestamp_us - t) > MAX_SWEEP_DT_S * 1e6:
+        return None
+    return best
+
+
+def sweep_in_frame(scene: SceneData, poses: np.ndarray, frame: int, sweep: int) -> tuple[np.ndarray, np.ndarray]:
+    """(origin (3,), returns (N, 3)) of the sweep at position `sweep` in the ego frame of the sweep at `frame`
+    (poses: (F, 4, 4) T_global_from_ego in scene sweep order; metres)."""
+    T = invert_transform(poses[frame]) @ poses[sweep]
+    return (transform_points(T, scene.sensor_origin_ego[None])[0],
+            transform_points(T, scene.sweeps[sweep].xyz.astype(np.float64)))
+
+
+def scene_poses(task: SceneTask, pipeline: list, scene: SceneData) -> tuple[np.ndarray, str]:
+    """(poses (F, 4, 4) in scene sweep order, "refined" | "logged"): the register stage's cached poses when
+    the work folder holds them for these inputs and params, else the logged ones."""
+    from nuplan_occ.pipeline.runner import stage_keys
+
+    logged = np.stack([sweep.logged_pose for sweep in scene.sweeps])
+    register = next((stage for stage in pipeline if "registration" in stage.outputs), None)
+    if register is None:
+        return logged, "logged"
+    entry = StageCache(task.work_dir).get(register.name, stage_keys(task, pipeline)[register.name])
+    poses = None if entry is None else getattr(entry.get("registration"), "poses", None)
+    if poses is None or np.shape(poses) != logged.shape:
+        return logged, "logged"
+    return np.asarray(poses, dtype=np.float64), "refined"
+
+
+def background_sweeps(task: SceneTask, pipeline: list, scene: SceneData) -> set[int] | None:
+    """Positions of the sweeps whose background went into the grids (the stage making `background_positions`
+    decides, from its sweep_stride and stride_min_sweeps), None when the pipeline has no such stage."""
+    from nuplan_occ.pipeline.runner import section_params
+
+    stage = next((stage for stage in pipeline if "background_positions" in stage.outputs), None)
+    if stage is None:
+        return None
+    params = section_params(task, pipeline, stage)
+    return set(scene.background_positions(params.sweep_stride, params.stride_min_sweeps))
+
+
+def frame_flags(row: dict) -> list[str]:
+    """Names of the flag rules (`rays.consistency.FLAG_RULES`) a sidecar row's figures break."""
+    return broken_rules({name: row.get(column) for column, name in FIGURES.items()})
+
+
+def score_scene(task: SceneTask, pipeline: list, frames: dict[str, dict], semantics: Callable[[str], np.ndarray],
+                max_rays: int | None = MAX_RAYS) -> list[dict]:
+    """Sidecar rows of one scene: frames maps each ok frame's token to its manifest identity (log, scene_name,
+    scene_token, frame_index, commit_id); semantics(token) reads its grid. Loads the scene through the
+    pipeline's first stage (`run_stages`, which reads the scene's sweeps)."""
+    from nuplan_occ.grid import DEFAULT_GRID
+    from nuplan_occ.pipeline.runner import run_stages
+
+    scene = run_stages(task, pipeline, ("scene",))["scene"]
+    poses, pose_source = scene_poses(task, pipeline, scene)
+    background = background_sweeps(task, pipeline, scene)
+    rows = []
+    for position, sweep in enumerate(scene.sweeps):
+        if sweep.token not in frames:
+            continue
+        row = {**frames[sweep.token], "token": sweep.token, "qa_ray_poses": pose_source, "qa_ray_problem": ""}
+        other = scoring_sweep(scene, position)
+        if other is None:
+            row["qa_ray_problem"] = f"no loaded sweep within {MAX_SWEEP_DT_S:g} s"
+        else:
+            row.update(qa_ray_sweep_token=scene.sweeps[other].token,
+                       qa_ray_sweep_dt_s=(scene.sweeps[other].timestamp_us - sweep.timestamp_us) / 1e6,
+                       qa_ray_sweep_in_background=None if background is None else other in background)
+            origin, returns = sweep_in_frame(scene, poses, position, other)
+            figures = ray_consistency(semantics(sweep.token), origin, returns, DEFAULT_GRID, max_rays)
+            row.update(qa_ray_returns=figures.n_returns, qa_ray_scored=figures.n_scored,
+                       **{column: getattr(figures, name) for column, name in FIGURES.items()})
+        row["qa_ray_flags"] = ",".join(frame_flags(row))
+        rows.append(row)
+    return rows
+
+
+@dataclass
+class QaResult:
+    """What `qa_dataset` did: rows (every sidecar row of the dataset's scenes), scenes scored now and reused
+    (their file matched the published rows), and the scenes flagged (log/scene -> share of flagged frames)."""
+
+    rows: list[dict] = field(default_factory=list)
+    scored: int = 0
+    reused: int = 0
+    flagged_scenes: dict[str, float] = field(default_factory=dict)
+
+
+def _sidecar_path(root: str, log: str, scene_name: str) -> str:
+    return f"{root}/{QA_FOLDER}/{log}/{scene_name}.parquet"
+
+
+def _read_sidecar(fs, path: str, max_rays: int | None) -> list[dict] | None:
+    """The rows of a sidecar file written with the same max_rays, None when absent or different."""
+    if not fs.exists(path):
+        return None
+    with fs.open(path, "rb") as handle:
+        table = pq.read_table(handle)
+    meta = json.loads((table.schema.metadata or {}).get(b"nuplan_occ_qa", b"{}"))
+    return table.to_pylist() if meta.get("max_rays") == max_rays else None
+
+
+def sidecar_columns(root: str, tokens: np.ndarray, commit_ids: np.ndarray) -> dict[str, np.ndarray]:
+    """The figure columns of the dataset's sidecar files for frames given by token and manifest commit_id:
+    float64 (N,) each, NaN where a frame has no row of that commit (never scored, or rebuilt since); {} when
+    the dataset has no sidecar file."""
+    import pyarrow.dataset
+
+    fs, base = resolve(root)
+    folder = f"{base}/{QA_FOLDER}"
+    if not fs.exists(folder):
+        return {}
+    table = pyarrow.dataset.dataset(folder, format="parquet", filesystem=arrow_filesystem(fs)).to_table(
+        columns=["token", "commit_id", *FIGURES])
+    if not table.num_rows:
+        return {}
+    found = {key: i for i, key in enumerate(zip(table["token"].to_pylist(), table["commit_id"].to_pylist()))}
+    rows = np.array([found.get((str(t), str(c)), -1) for t, c in zip(tokens, commit_ids)], dtype=np.int64)
+    out = {}
+    for column in FIGURES:
+        values = table[column].cast(pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+        out[column] = np.where(rows >= 0, values[np.maximum(rows, 0)], np.nan)
+    return out
+
+
+def scene_tasks(root: str, pipeline: list, data_root: Path, maps_root: str | None, work_root: Path | None) -> list:
+    """The build's scene tasks of the dataset at `root`: its params (dataset.json) over the pipeline's
+    defaults, the logs it holds, found under data_root; work_root: the build's work folder (default OUT/work)."""
+    from nuplan_occ.io.data_root import maps_root_for, resolve_logs
+    from nuplan_occ.pipeline.build import default_work_root, plan_tasks
+    from nuplan_occ.pipeline.params import apply_overrides, default_params
+    from nuplan_occ.storage.metadata import read_metadata
+
+    params = apply_overrides(default_params(pipeline), read_metadata(root).get("params", {}), f"{root}/dataset.json")
+    logs = sorted({log for log in open_dataset(root).column("log").to_pylist() if log})
+    dbs = resolve_logs(data_root, split=None, log_names=logs)
+    return plan_tasks(dbs, Path(data_root), maps_root_for(data_root, maps_root), root,
+                      Path(work_root) if work_root else default_work_root(root), params)
+
+
+def qa_dataset(root: str, data_root: Path, pipeline: list, *, maps_root: str | None = None,
+               work_root: Path | None = None, max_rays: int | None = MAX_RAYS, force: bool = False,
+               progress: Callable[[int, int, str], None] | None = None) -> QaResult:
+    """Score every ok frame of the dataset at `root` (module docstring) and write the sidecar files; a scene
+    whose file holds the same frames and commits (and max_rays) is reused unless `force`."""
+    ds = open_dataset(root)
+    identity = ds.columns(["token", "log", "scene_name", "scene_token", "frame_index", "commit_id"]).to_pylist()
+    by_scene: dict[tuple[str, str], dict[str, dict]] = {}
+    for row in identity:
+        by_scene.setdefault((row["log"], row["scene_token"]), {})[row["token"]] = row
+    fs, base = resolve(root)
+    result = QaResult()
+    tasks = [t for t in scene_tasks(root, pipeline, data_root, maps_root, work_root)
+             if (t.log_name, t.scene_token) in by_scene]
+    for k, task in enumerate(tasks):
+        if progress is not None:
+            progress(k, len(tasks), task.scene_name)
+        frames = {token: {key: row[key] for key in ("log", "scene_name", "scene_token", "frame_index", "commit_id")}
+                  for token, row in by_scene[(task.log_name, task.scene_token)].items()}
+        path = _sidecar_path(base, task.log_name, task.scene_name)
+        rows = None if force else _read_sidecar(fs, path, max_rays)
+        if rows is not None and {(r["token"], r["commit_id"]) for r in rows} == \
+                {(token, f["commit_id"]) for token, f in frames.items()}:
+            result.reused += 1
+        else:
+            rows = score_scene(task, pipeline, frames, lambda token: ds.get(ds.index_of_token(token),
+                                                                            keys=("semantics",))["semantics"],
+                               max_rays)
+            table = pa.Table.from_pylist(rows, schema=SCHEMA).replace_schema_metadata(
+                {"nuplan_occ_qa": json.dumps({"max_rays": max_rays})})
+            fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
+            atomic_put(fs, path, to_parquet_bytes(table))
+            result.scored += 1
+        result.rows.extend(rows)
+        scored = [r for r in rows if not r["qa_ray_problem"]]
+        share = sum(bool(r["qa_ray_flags"]) for r in scored) / len(scored) if scored else 0.0
+        if share > SCENE_RULE_SHARE:
+            result.flagged_scenes[f"{task.log_name}/{task.scene_name}"] = share
+    if progress is not None:
+        progress(len(tasks), len(tasks), "")
+    return result
