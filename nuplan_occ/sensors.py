@@ -10,12 +10,14 @@ For an output frame (a lidar_pc token at time t, µs) and each row of its log's 
     lidar_to_ego: T_ego_from_lidar (4 x 4 row-major, m), the log's MergedPointCloud lidar row (the frame the
         sweeps are stored in); lidar_filename: the sweep's lidar_pc.filename (relative to sensor_blobs/);
     image_token, image_timestamp_us, image_filename (nuPlan's filename_jpg, relative to sensor_blobs/),
-    image_path (the same file relative to the data root the metadata was read from), image_ego_to_global
-        (T_global_from_ego at the image's time, null when the log has no pose there): the camera's `image` row
-        nearest in time to t, when |image time - t| <= IMAGE_TOLERANCE_US; all null otherwise (or when the
-        file name would leave sensor_blobs/, which is never opened).
-An image taken at another time than the sweep saw the world from another ego pose: camera-to-LiDAR transforms
-of exports compose lidar_to_ego, the two ego poses and camera_to_ego (see `camera_to_lidar`).
+    image_path (the same file relative to the data root the metadata was read from), image_ego_to_frame_ego
+        (T_ego(t)_from_ego(image time): the ego's motion between the sweep and the image, from the log's
+        ego_pose table at both times; identity for an image taken at t; null when the log has no pose at one of
+        them): the camera's `image` row nearest in time to t, when |image time - t| <= IMAGE_TOLERANCE_US; all
+        null otherwise (or when the file name would leave sensor_blobs/, which is never opened).
+The motion is relative, taken from the log's poses at both times, so it composes with any pose of the frame
+(the dataset's ego_to_global may be refined by registration): camera-to-LiDAR at the frame's time is
+inv(lidar_to_ego) @ image_ego_to_frame_ego @ camera_to_ego (`camera_to_lidar`).
 `add_sensors(root, data_root)` writes the sidecars of an existing dataset from the logs it was built from.
 """
 
@@ -64,7 +66,7 @@ def frame_sensor_rows(log: NuplanLog, frames: Sequence[tuple[str, int]], scene_t
                    "camera_to_ego": _flat(camera.T_ego_from_camera), "lidar_to_ego": lidar_to_ego,
                    "lidar_filename": filenames.get(token),
                    "image_token": None, "image_filename": None, "image_path": None, "image_timestamp_us": None,
-                   "image_ego_to_global": None}
+                   "image_ego_to_frame_ego": None}
             if len(times):
                 k = int(np.argmin(np.abs(times - t)))
                 name = images.filenames[chosen[k]].decode()
@@ -73,21 +75,20 @@ def frame_sensor_rows(log: NuplanLog, frames: Sequence[tuple[str, int]], scene_t
                             "image_path": f"{image_prefix}/{name}" if image_prefix else name,
                             "image_timestamp_us": int(times[k])}
                     try:
-                        row["image_ego_to_global"] = _flat(log.ego_pose_at(int(times[k])))
+                        motion = invert_transform(log.ego_pose_at(int(t))) @ log.ego_pose_at(int(times[k]))
+                        row["image_ego_to_frame_ego"] = _flat(motion)
                     except PoseGapError:
                         pass
             rows.append(row)
     return pa.Table.from_pylist(rows, schema=SENSOR_SCHEMA)
 
 
-def camera_to_lidar(camera: dict, lidar_to_ego: np.ndarray, frame_ego_to_global: np.ndarray) -> np.ndarray:
+def camera_to_lidar(camera: dict, lidar_to_ego: np.ndarray) -> np.ndarray:
     """T_lidar_from_camera (4, 4) at the frame's time of one camera of `OccDataset.sensors`: the camera at its
-    image's time carried into the frame's LiDAR frame through the global frame when both ego poses are known
-    (a moving ego between image and sweep), else through the ego frame alone."""
-    ego_from_camera = camera["camera_to_ego"]
-    image_pose = camera.get("image_ego_to_global")
-    if image_pose is not None and np.all(np.isfinite(frame_ego_to_global)):
-        ego_from_camera = invert_transform(frame_ego_to_global) @ image_pose @ ego_from_camera
+    image's time carried into the frame's LiDAR frame by the ego's motion between them (module doc); without a
+    known motion, through the ego frame alone."""
+    motion = camera.get("image_ego_to_frame_ego")
+    ego_from_camera = camera["camera_to_ego"] if motion is None else motion @ camera["camera_to_ego"]
     return invert_transform(lidar_to_ego) @ ego_from_camera
 
 

@@ -8,6 +8,12 @@ steps at 10 Hz); a failed or missing frame breaks the run. Item of a clip:
            ego frame expressed in the clip's first ego frame (poses[0] = identity);
     ego_to_global: float64 [T, 4, 4]; timestamp_us, frame_index: int64 [T];
     tokens: list of T lidar_pc tokens; scene_token, log_name: str.
+With cameras=True (the dataset's sensor metadata, `nuplan_occ.sensors`; MissingSensorsError without it):
+    lidar_to_ego: float64 [T, 4, 4]; cams: {channel: {"intrinsic" [T, 3, 3], "distortion" [T, 5],
+          "camera_to_ego" [T, 4, 4] (float64), "image_timestamp_us" int64 [T] (-1: no image within 50 ms),
+          "image_path": list of T paths relative to the data root (None: no image)}};
+    and with data_root given, images: {channel: uint8 [T, H, W, 3]} decoded RGB (MissingSensorsError naming
+          the frame when a camera has no image).
 Unknown identity (an imported release without its logs): poses NaN, timestamp_us / frame_index -1,
 scene_token / log_name None; frames of unknown scene only form clips of length 1.
 Clips and subsets are chosen from manifest columns only (see `nuplan_occ.storage.clips`).
@@ -16,14 +22,18 @@ Works with DataLoader workers: each worker reopens its shard handles after the f
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pyarrow as pa
 import torch
+from PIL import Image
 
 from nuplan_occ.dataset import OccDataset
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.storage import clips
 from nuplan_occ.storage.errors import DatasetFormatError
+from nuplan_occ.storage.sensors import MissingSensorsError
 
 
 def _index_columns(ds: OccDataset, subset: str | None) -> dict[str, np.ndarray]:
@@ -56,7 +66,8 @@ class OccupancyDataset(torch.utils.data.Dataset):
 
     subset: None (all clips), "spatial" (ego_speed > theta_e) or "temporal" (ego_speed < theta_e and
     max_agent_speed > theta_o), speeds in m/s from the manifest; a clip is in a subset iff all its
-    frames are. keys: members to load (each must exist for every frame, never faked).
+    frames are. keys: members to load (each must exist for every frame, never faked). cameras: add each frame's
+    camera calibration and LiDAR-to-ego transform; data_root (implies cameras): also the decoded images.
     """
 
     def __init__(
@@ -68,9 +79,15 @@ class OccupancyDataset(torch.utils.data.Dataset):
         keys: tuple[str, ...] = ("semantics",),
         theta_e: float = 1.0,
         theta_o: float = 2.0,
+        cameras: bool = False,
+        data_root: str | None = None,
     ):
         self.ds = OccDataset(path)
         self.clip_len, self.stride, self.subset, self.keys = clip_len, stride, subset, tuple(keys)
+        self.cameras, self.data_root = cameras or data_root is not None, data_root
+        if self.cameras and not self.ds.has_sensors:
+            raise MissingSensorsError(f"{path}: no sensor metadata (dataset built before sensors; add it with "
+                                      "`nuplan-occ sensors <dataset> <nuPlan data root>`)")
         scenes = self.ds.scene_codes
         columns = _index_columns(self.ds, subset)
         frames = _output_index(self.ds, scenes, columns["output_index"])
@@ -103,4 +120,32 @@ class OccupancyDataset(torch.utils.data.Dataset):
         item["tokens"] = [f["token"] for f in frames]
         item["scene_token"] = frames[0]["scene_token"]
         item["log_name"] = frames[0]["log_name"]
+        if self.cameras:
+            item |= self._camera_items(self.frame_indices(i).tolist(), item["tokens"])
         return item
+
+    def _camera_items(self, indices: list[int], tokens: list[str]) -> dict:
+        """lidar_to_ego, cams and (with a data root) images of a clip's frames (class doc)."""
+        sensors = [self.ds.sensors(j) for j in indices]
+        channels = list(sensors[0]["cameras"])
+        cams = {}
+        for channel in channels:
+            per_frame = [s["cameras"][channel] for s in sensors]
+            cams[channel] = {name: torch.from_numpy(np.stack([c[name] for c in per_frame]))
+                             for name in ("intrinsic", "distortion", "camera_to_ego")}
+            cams[channel]["image_timestamp_us"] = torch.tensor(
+                [-1 if c["image_timestamp_us"] is None else c["image_timestamp_us"] for c in per_frame], dtype=torch.int64)
+            cams[channel]["image_path"] = [c["image_path"] for c in per_frame]
+        out = {"lidar_to_ego": torch.from_numpy(np.stack([s["lidar_to_ego"] for s in sensors])), "cams": cams}
+        if self.data_root is not None:
+            out["images"] = {channel: torch.from_numpy(np.stack([self._image(cams[channel]["image_path"][t], tokens[t],
+                                                                              channel) for t in range(len(indices))]))
+                             for channel in channels}
+        return out
+
+    def _image(self, path: str | None, token: str, channel: str) -> np.ndarray:
+        """The decoded RGB image (H, W, 3) uint8 at `path` under the data root."""
+        if path is None:
+            raise MissingSensorsError(f"{self.ds.root}: frame {token!r} has no {channel} image within 50 ms")
+        with Image.open(Path(self.data_root) / path) as image:
+            return np.asarray(image.convert("RGB"))

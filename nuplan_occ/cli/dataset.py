@@ -1,4 +1,4 @@
-"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, compact, report. `register(app)` adds
+"""Dataset tools of the `nuplan-occ` CLI: view, eval, stats, validate, export, sensors, compact, report. `register(app)` adds
 them."""
 
 from __future__ import annotations
@@ -261,8 +261,13 @@ def validate_cmd(out: str = typer.Argument(..., help="Dataset root.")) -> None:
 def export_cmd(
     out: str = typer.Argument(..., help="Dataset root."),
     dest: Path = typer.Argument(..., help="Destination folder (local)."),
-    format: str = typer.Option(..., "--format", help="occ3d (<log>/<token>/labels.npz, free = 17), uniscene "
-                               "(nuplan_quantized_X_Y_Z/<token>.npy) or mesh (<log>/<scene>.glb and .ply)."),
+    format: str = typer.Option(..., "--format", help="occ3d (gts/<scene>/<token>/labels.npz + occ_infos.pkl, free = 17), "
+                               "uniscene (nuplan_quantized_X_Y_Z/<token>.npy + nuplan_infos.pkl, LiDAR frame) or mesh "
+                               "(<log>/<scene>.glb and .ply)."),
+    frame: Optional[str] = typer.Option(None, "--frame", help="ego | lidar: the grids' frame (default: occ3d ego, "
+                                        "uniscene lidar; needs the dataset's sensor metadata)."),
+    grid: Optional[str] = typer.Option(None, "--grid", help="occ3d (200 x 200 x 16 at 0.4 m) or a voxel size such as "
+                                       "0.5m: coarsen (rules in export.json); default: the dataset's grid."),
     data_root: Optional[Path] = typer.Option(None, "--data-root", envvar="NUPLAN_DATA_ROOT",
                                              help="mesh: the nuPlan data root the dataset was built from."),
     token: Optional[str] = typer.Option(None, "--token", help="mesh: only this frame's scene, objects placed "
@@ -285,18 +290,38 @@ def export_cmd(
         return
     from nuplan_occ.export.formats import export_dataset
 
-    summary = export_dataset(out, dest, format, strict=strict)
+    summary = export_dataset(out, dest, format, strict=strict, frame=frame, grid=grid)
+    for warning in summary["warnings"]:
+        err_console.print(f"warning: {warning}", highlight=False, soft_wrap=True)
     for skipped in summary["skipped"]:
         err_console.print(f"skipped frame {skipped['frame']}, member {skipped['member']}: {skipped['problem']}",
                           highlight=False, soft_wrap=True)
-    console.print(f"{summary['frames']} frames exported to {dest} ({format}); remap and frame list in "
-                  f"{os.path.join(str(dest), 'export.json')}")
+    console.print(f"{summary['frames']} frames exported to {dest} ({format}, {summary['frame']} frame, grid "
+                  f"{summary['grid']['shape']}); info file {summary['info_file']}; remap and frame list in "
+                  f"{os.path.join(str(dest), 'export.json')}", highlight=False, soft_wrap=True)
     missing = {k: v for k, v in summary["frames_without"].items() if v}
     if missing:
         err_console.print(f"frames without a mask member (key omitted in their files): {json.dumps(missing)}")
     if summary["skipped"] or summary["damaged_manifest"]:
         err_console.print(f"{len(summary['skipped'])} frame(s) skipped, {len(summary['damaged_manifest'])} "
                           "unreadable manifest file(s): the export is incomplete", highlight=False)
+        raise typer.Exit(code=1)
+
+
+def sensors_cmd(out: str = typer.Argument(..., help="Dataset root."),
+                data_root: Path = typer.Argument(..., help="The nuPlan data root the dataset was built from.")) -> None:
+    """Add sensor metadata (cameras' images and calibration, LiDAR-to-ego, per frame) to a dataset built without
+    it: sensors/<log>/<scene_token>.parquet, read from the logs' DBs. A log that cannot be found or read is named
+    (its scenes get none) and the exit code is 1."""
+    from nuplan_occ.sensors import add_sensors
+
+    summary = add_sensors(out, data_root)
+    console.print(f"sensor metadata of {summary['frames']} frames ({summary['scenes']} scenes, {summary['rows']} camera "
+                  f"rows, {summary['without_image']} without an image within 50 ms) written to {out}/sensors",
+                  highlight=False, soft_wrap=True)
+    for problem in summary["problems"]:
+        err_console.print(problem, highlight=False, soft_wrap=True)
+    if summary["problems"]:
         raise typer.Exit(code=1)
 
 
@@ -350,6 +375,7 @@ def register(app: typer.Typer) -> None:
     app.command("stats")(stats_cmd)
     app.command("validate")(validate_cmd)
     app.command("export")(export_cmd)
+    app.command("sensors")(sensors_cmd)
     app.command("compact")(compact_cmd)
 
 

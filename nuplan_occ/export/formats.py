@@ -1,19 +1,26 @@
-"""Export a published dataset to the file layouts that occupancy training code reads.
+"""Export a published dataset to the file layouts that occupancy training code reads, with its info files.
 
-Both exports keep our grid as it is: arrays indexed [x, y, z] in the ego frame (nuPlan rear axle, x
-forward, y left, z up), 400 x 400 x 32 voxels of 0.25 m over x, y in [-50, 50) m, z in [-3, 5) m. Occ3D-
-nuScenes arrays are also [x, y, z] in the ego frame, but 200 x 200 x 16 at 0.4 m over [-40, 40]^2 x
-[-1, 5.4] m; no resampling is done, so configs must state our shape, range and voxel size.
-Besides the frame files, `<dest>/export.json` records the format, grid, label remap and, per frame,
-log, scene, token, timestamp and T_global_from_ego (for building a consumer's info file; null where the
-dataset does not know them, e.g. an imported release without its logs, whose occ3d folder is
-`unknown_log`).
+Grids are arrays indexed [x, y, z]. By default ("--frame", "--grid" unset) the occ3d export keeps our grid
+(ego frame = nuPlan rear axle, x forward, y left, z up; 400 x 400 x 32 voxels of 0.25 m over x, y in
+[-50, 50) m, z in [-3, 5) m) and the uniscene export moves it into the LiDAR frame, as UniScene v2's grids are
+(same bounds and voxel size around the LiDAR; `regrid.to_lidar_frame`, which needs the dataset's sensor
+metadata). frame "ego" | "lidar" chooses explicitly; grid "occ3d" | "<size>m" coarsens afterwards
+(`regrid.coarsen`: rules and the uncovered part stated there). export.json records the frame and grid written.
+Besides the frame files, `<dest>/export.json` records the format, frame, grid, label remap and, per frame,
+log, scene, token, timestamp and T_global_from_ego (null where the dataset does not know them, e.g. an imported
+release without its logs), and an info pickle (`export.infos`: per-frame token, poses, LiDAR file and
+camera records) is written next to the grids. Without sensor metadata (a dataset built before it, see
+`nuplan_occ.sensors.add_sensors`) the records have no lidar_path, lidar2ego_* or cams, and the summary's
+"sensors" is false.
 A frame whose members cannot be read (checksum mismatch, truncated or missing shard, undecodable or
 unmappable data) is skipped and listed (frame key, token, member, problem); the other frames are
 written. Unreadable manifest files are skipped as `open_dataset` skips them (listed too), or refused
 with strict=True.
 
-format "occ3d": `<dest>/<log>/<token>/labels.npz` (np.savez_compressed) with
+format "occ3d": `<dest>/gts/<scene>/<token>/labels.npz` (np.savez_compressed), <scene> = `scene-<scene_token>`
+  (unique across logs, unlike nuPlan's scene names, which restart in every log; `unknown_scene` when unknown),
+  and `<dest>/occ_infos.pkl` = {"infos": [frame_info + occ_path], "metadata": {"version"}}; occ_path is
+  `gts/<scene>/<token>`, relative to dest, the folder the loaders join "labels.npz" to. The npz holds
     semantics    uint8 [X, Y, Z], Occ3D-nuScenes id layout (classes 0-16, free = 17), remapped by OCC3D_REMAP;
     mask_lidar   uint8 0/1, when the frame has the member (omitted otherwise, never invented);
     mask_camera  uint8 0/1, likewise.
@@ -35,23 +42,33 @@ format "occ3d": `<dest>/<log>/<token>/labels.npz` (np.savez_compressed) with
   Occ3D ids 3, 6, 9, 10, 14, 16 never occur. `invert_occ3d` maps back.
 
 format "uniscene": `<dest>/nuplan_quantized_<X>_<Y>_<Z>/<token>.npy`, dense uint8 [X, Y, Z], the layout
-  UniScenev2's occupancy loader reads (peers.md section 1 item 11: dense uint8 `.npy` per token under
-  `nuplan_quantized_{X}_{Y}_{Z}/`, 0 empty, background 1, object class + 1). Our ids already follow that
-  palette (0-8, 12 road, 14 road_line; 13 other_ground is ours), so ids are written unchanged. Masks are
-  not part of that layout and are not exported.
+  UniScene v2's occupancy loaders read (0 empty, background 1, object class + 1, 12 road, 14 road line), and
+  `<dest>/nuplan_infos.pkl` = {"infos": [frame_info + occ_path], "scene_tokens": [[tokens of one scene in
+  time order], ...], "metadata"}: what its renderer reads (`infos['infos']` by token, each with `cams`, and
+  `infos['scene_tokens']`). UNISCENE_REMAP keeps every id: ours are UniScene's numbers (0 empty,
+  1 background/other, objects 2-8, 12 road, 14 road line), and our 13 other_ground (walkways and verges
+  outside the drivable area) stays 13, which UniScene's palette calls "sidewalk", the nearest meaning; its
+  own pipeline never writes 13, so a model trained only on its data has no signal for that id (map 13 to 1
+  to reproduce its label set). Masks are not part of that layout and are not exported.
 """
 
 from __future__ import annotations
 
 import json
+import pickle
 import re
 from pathlib import Path
 
 import numpy as np
 
 from nuplan_occ.dataset import open_dataset
+from nuplan_occ.export.infos import frame_info
+from nuplan_occ.export.regrid import (
+    COARSEN_RULES, LIDAR_FRAME_RULE, GridError, coarsen, target_grid, to_lidar_frame,
+)
 from nuplan_occ.labels import LABELS
 from nuplan_occ.storage.errors import ChecksumError, StorageError
+from nuplan_occ.storage.sensors import MissingSensorsError
 
 FORMATS = ("occ3d", "uniscene")
 BATCH = 8
@@ -66,8 +83,15 @@ OCC3D_FREE = 17
 OCC3D_REMAP = {0: 17, 1: 15, 2: 4, 3: 2, 4: 7, 5: 8, 6: 1, 7: 5, 8: 0, 12: 11, 13: 13, 14: 12}
 """Our semantic id -> Occ3D-nuScenes id (see module docstring)."""
 MASK_MEMBERS = ("mask_lidar", "mask_camera")
-UNKNOWN_LOG = "unknown_log"
-"""occ3d folder of frames whose log is unknown (an imported release without its logs)."""
+UNKNOWN_SCENE = "unknown_scene"
+"""occ3d scene folder of frames whose scene is unknown (an imported release without its logs)."""
+UNISCENE_REMAP = {i: i for i in (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13, 14)}
+"""Our semantic id -> UniScene v2 id: unchanged, 13 other_ground included (module docstring)."""
+UNISCENE_NAMES = {13: "sidewalk"}
+"""UniScene's palette names where they differ from ours."""
+INFO_FILES = {"occ3d": "occ_infos.pkl", "uniscene": "nuplan_infos.pkl"}
+DEFAULT_FRAME = {"occ3d": "ego", "uniscene": "lidar"}
+INFO_VERSION = "nuplan-occ"
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
 
 
@@ -83,13 +107,18 @@ def _lut(mapping: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return lut, defined
 
 
-def to_occ3d(semantics: np.ndarray, where: str = "semantics") -> np.ndarray:
-    """Our uint8 ids -> Occ3D ids (OCC3D_REMAP); ExportError naming `where` for an id outside the map."""
-    lut, defined = _lut(OCC3D_REMAP)
+def _remap(semantics: np.ndarray, mapping: dict[int, int], where: str, consumer: str) -> np.ndarray:
+    """uint8 ids mapped by `mapping`; ExportError naming `where` for an id outside the map."""
+    lut, defined = _lut(mapping)
     bad = np.setdiff1d(np.unique(semantics), np.flatnonzero(defined))
     if bad.size:
-        raise ExportError(f"{where}: ids {bad.tolist()} have no Occ3D mapping")
+        raise ExportError(f"{where}: ids {bad.tolist()} have no {consumer} mapping")
     return lut[semantics]
+
+
+def to_occ3d(semantics: np.ndarray, where: str = "semantics") -> np.ndarray:
+    """Our uint8 ids -> Occ3D ids (OCC3D_REMAP); ExportError naming `where` for an id outside the map."""
+    return _remap(semantics, OCC3D_REMAP, where, "Occ3D")
 
 
 def invert_occ3d(semantics: np.ndarray, where: str = "semantics") -> np.ndarray:
@@ -118,19 +147,24 @@ def uniscene_folder(shape: tuple[int, int, int]) -> str:
     return "nuplan_quantized_{}_{}_{}".format(*shape)
 
 
-def _write_frame(frame: dict, dest: Path, fmt: str, shape: tuple[int, int, int]) -> str:
-    """Write one frame's file; returns its path relative to dest."""
+def scene_folder(scene_token: str | None) -> str:
+    """occ3d scene folder: `scene-<scene_token>` (`unknown_scene` when unknown)."""
+    return f"scene-{_safe(scene_token, 'scene token')}" if scene_token else UNKNOWN_SCENE
+
+
+def _write_frame(frame: dict, dest: Path, fmt: str, shape: tuple[int, int, int]) -> tuple[str, str]:
+    """Write one frame's file; returns (its path relative to dest, the info record's occ_path)."""
     token = _safe(frame["token"], "token")
     if fmt == "uniscene":
         rel = f"{uniscene_folder(shape)}/{token}.npy"
-        np.save(dest / rel, np.ascontiguousarray(frame["semantics"], dtype=np.uint8))
-        return rel
-    rel = f"{_safe(frame['log_name'] or UNKNOWN_LOG, 'log name')}/{token}/labels.npz"
-    (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+        np.save(dest / rel, _remap(frame["semantics"], UNISCENE_REMAP, f"frame {token}", "UniScene"))
+        return rel, rel
+    folder = f"gts/{scene_folder(frame['scene_token'])}/{token}"
+    (dest / folder).mkdir(parents=True, exist_ok=True)
     arrays = {"semantics": to_occ3d(frame["semantics"], f"frame {token}")}
     arrays |= {m: frame[m].astype(np.uint8) for m in MASK_MEMBERS if m in frame}
-    np.savez_compressed(dest / rel, **arrays)
-    return rel
+    np.savez_compressed(dest / folder / "labels.npz", **arrays)
+    return f"{folder}/labels.npz", folder
 
 
 def _pose_or_none(pose: np.ndarray) -> list | None:
@@ -146,11 +180,13 @@ def _group_by_members(ds, indices: range, wanted: tuple[str, ...]) -> dict[tuple
     return groups
 
 
-def _frame_entry(frame: dict, dest: Path, fmt: str, shape: tuple[int, int, int]) -> dict:
-    """Write one frame's file; its entry in the frame list."""
-    return {"file": _write_frame(frame, dest, fmt, shape), "token": frame["token"], "log_name": frame["log_name"],
-            "scene_token": frame["scene_token"], "frame_index": frame["frame_index"],
-            "timestamp_us": frame["timestamp_us"], "ego_to_global": _pose_or_none(frame["ego_to_global"])}
+def _frame_entry(frame: dict, dest: Path, fmt: str, shape: tuple[int, int, int]) -> tuple[dict, str]:
+    """Write one frame's file; (its entry in the frame list, its occ_path)."""
+    rel, occ_path = _write_frame(frame, dest, fmt, shape)
+    entry = {"file": rel, "token": frame["token"], "log_name": frame["log_name"], "scene_token": frame["scene_token"],
+             "frame_index": frame["frame_index"], "timestamp_us": frame["timestamp_us"],
+             "ego_to_global": _pose_or_none(frame["ego_to_global"])}
+    return entry, occ_path
 
 
 READ_ERRORS = (StorageError, OSError)
@@ -194,44 +230,122 @@ def _read_batch(ds, indices: list[int], keys: tuple[str, ...]) -> list[tuple[int
     return out
 
 
-def export_dataset(root: str, dest: str | Path, format: str, *, strict: bool = False) -> dict:  # noqa: A002
+class _Placement:
+    """How frames are placed: grid frame ("ego" | "lidar"), optional coarser target grid, output grid."""
+
+    def __init__(self, ds, fmt: str, frame: str | None, grid: str | None):
+        self.frame = frame or DEFAULT_FRAME[fmt]
+        self.warnings: list[str] = []
+        if self.frame not in ("ego", "lidar"):
+            raise ExportError(f"frame {self.frame!r}: use ego or lidar")
+        if self.frame == "lidar" and not ds.has_sensors:
+            if frame is not None:
+                raise ExportError(f"{ds.root}: --frame lidar needs the LiDAR-to-ego transform, and the dataset has no "
+                                  "sensor metadata (add it with `nuplan-occ sensors <dataset> <nuPlan data root>`)")
+            self.frame = "ego"
+            self.warnings.append(f"{ds.root} has no sensor metadata: grids left in the ego (rear-axle) frame, not "
+                                 f"the LiDAR frame {fmt} uses (add it with `nuplan-occ sensors <dataset> <data root>`)")
+        try:
+            self.target = target_grid(grid, ds.grid) if grid else None
+        except GridError as exc:
+            raise ExportError(str(exc)) from None
+        self.source = ds.grid
+        self.shape = (self.target or ds.grid).shape
+
+    def place(self, frame: dict, sensors: dict | None) -> dict:
+        """The frame's members in the export's frame and grid."""
+        if self.frame == "lidar":
+            frame = to_lidar_frame(frame, self.source, sensors["lidar_to_ego"])
+        return coarsen(frame, self.source, self.target) if self.target else frame
+
+    def grid_dict(self) -> dict:
+        """The output grid as export.json records it."""
+        out = (self.target or self.source).to_dict()
+        out["frame"] = ("LiDAR (the log's MergedPointCloud frame): bounds around the LiDAR" if self.frame == "lidar"
+                        else out["frame"])
+        return out
+
+
+def _sensors_or_none(ds, i: int) -> dict | None:
+    try:
+        return ds.sensors(i)
+    except MissingSensorsError:
+        return None
+
+
+def _info_file(fmt: str, infos: list[dict]) -> dict:
+    """The info pickle's content: {"infos", "metadata"} (+ "scene_tokens" for uniscene, scenes in order of first
+    frame, tokens in time order)."""
+    content = {"infos": infos, "metadata": {"version": INFO_VERSION}}
+    if fmt == "uniscene":
+        scenes: dict[object, list[dict]] = {}
+        for info in infos:
+            scenes.setdefault(info["scene_token"] or info["token"], []).append(info)
+        content["scene_tokens"] = [[i["token"] for i in sorted(frames, key=lambda i: i["timestamp"] or 0)]
+                                   for frames in scenes.values()]
+    return content
+
+
+def export_dataset(root: str, dest: str | Path, format: str, *, strict: bool = False,  # noqa: A002
+                   frame: str | None = None, grid: str | None = None) -> dict:
     """Write the ok frames of the dataset at `root` under `dest` in `format` ("occ3d" | "uniscene").
 
-    Returns {"format", "source", "dest", "frames", "frames_without": {mask member: count} (occ3d),
-    "remap": remap rows (occ3d: our id -> Occ3D id; uniscene: identity), "grid", "skipped": [{"frame",
-    "token", "log_name", "member", "problem"}] (frames not written), "damaged_manifest": [one line per
+    frame: "ego" | "lidar" (None: the format's, DEFAULT_FRAME); grid: None (ours), "occ3d" or "<size>m".
+    Returns {"format", "source", "dest", "frames", "frame" (written), "grid" (written), "source_grid",
+    "frames_without": {mask member: count} (occ3d), "remap": rows (our id -> the consumer's id), "info_file",
+    "sensors": whether camera / LiDAR records were written, "frames_without_cameras", "warnings", "skipped":
+    [{"frame", "token", "log_name", "member", "problem"}] (frames not written), "damaged_manifest": [one line per
     unreadable manifest file skipped]}; the same plus the frame list is written to `<dest>/export.json`.
     strict: refuse a dataset with an unreadable manifest file (DatasetFormatError).
     """
     if format not in FORMATS:
         raise ExportError(f"format {format!r}: use one of {FORMATS} or mesh")
     ds = open_dataset(root, strict=strict)
+    placement = _Placement(ds, format, frame, grid)
+    scene_names = ds.column("scene_name").to_pylist() if ds.has_column("scene_name") else [None] * len(ds)
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     if format == "uniscene":
-        (dest / uniscene_folder(ds.grid.shape)).mkdir(exist_ok=True)
+        (dest / uniscene_folder(placement.shape)).mkdir(exist_ok=True)
     wanted = ("semantics", *MASK_MEMBERS) if format == "occ3d" else ("semantics",)
-    frames, skipped, without = [], [], {m: 0 for m in MASK_MEMBERS}
+    frames, infos, skipped, without = [], [], [], {m: 0 for m in MASK_MEMBERS}
+    no_cameras = 0
     for start in range(0, len(ds), BATCH):
         for keys, indices in _group_by_members(ds, range(start, min(start + BATCH, len(ds))), wanted).items():
-            for i, frame in _read_batch(ds, indices, keys):
-                if isinstance(frame, Exception):
-                    skipped.append(_unreadable(ds, i, keys, frame))
+            for i, data in _read_batch(ds, indices, keys):
+                if isinstance(data, Exception):
+                    skipped.append(_unreadable(ds, i, keys, data))
+                    continue
+                sensors = _sensors_or_none(ds, i) if ds.has_sensors else None
+                if placement.frame == "lidar" and sensors is None:
+                    skipped.append(_skipped(ds, i, "sensors", MissingSensorsError(
+                        f"frame {data['token']!r} has no sensor metadata (LiDAR-to-ego transform)")))
                     continue
                 try:
-                    frames.append(_frame_entry(frame, dest, format, ds.grid.shape))
+                    entry, occ_path = _frame_entry(placement.place(data, sensors), dest, format, placement.shape)
                 except ExportError as exc:
                     skipped.append(_skipped(ds, i, "semantics", exc))
                     continue
+                frames.append(entry)
+                info = frame_info(data, scene_names[i], sensors, placement.frame)
+                infos.append(info | {"occ_path": occ_path})
+                no_cameras += len(info.get("cams", {})) < len(sensors["cameras"]) if sensors else 1
                 for m in MASK_MEMBERS:
-                    without[m] += m not in frame
+                    without[m] += m not in data
     if format == "occ3d":
         remap = remap_table()
     else:
-        remap = [{"id": i, "name": name, "uniscene_id": i} for i, name in sorted(LABELS.names.items())]
+        remap = [{"id": i, "name": LABELS.names[i], "uniscene_id": j,
+                  "uniscene_name": UNISCENE_NAMES.get(j, LABELS.names[i])} for i, j in sorted(UNISCENE_REMAP.items())]
+    with open(dest / INFO_FILES[format], "wb") as f:
+        pickle.dump(_info_file(format, infos), f, protocol=4)
     summary = {"format": format, "source": str(root), "dest": str(dest), "frames": len(frames),
+               "frame": placement.frame, "grid": placement.grid_dict(), "source_grid": ds.grid.to_dict(),
+               "grid_rules": {"frame": LIDAR_FRAME_RULE if placement.frame == "lidar" else None,
+                              "coarsen": COARSEN_RULES if placement.target else None},
                "frames_without": without if format == "occ3d" else {}, "remap": remap,
-               "grid": ds.grid.to_dict(), "skipped": skipped,
+               "info_file": INFO_FILES[format], "sensors": ds.has_sensors, "frames_without_cameras": no_cameras,
+               "warnings": placement.warnings, "skipped": skipped,
                "damaged_manifest": [damaged.describe() for damaged in ds.damaged]}
     (dest / "export.json").write_text(json.dumps({**summary, "frame_list": frames}, indent=1) + "\n")
     return summary

@@ -36,6 +36,12 @@ TIE_PRECEDENCE = ("pedestrian", "bicycle", "traffic_cone", "czone_sign", "barrie
                   "road_line", "other", "other_ground", "road")
 """Class order that breaks ties between equally frequent classes of a target voxel's children."""
 MASKS = ("mask_lidar", "mask_camera")
+LIDAR_FRAME_RULE = ("each voxel of the LiDAR-frame grid takes the ego-grid voxel holding its centre mapped by "
+                    "T_ego_from_lidar (nearest voxel); outside the ego grid: empty, unobserved; flow rotated")
+COARSEN_RULES = ("children = source voxels whose centres lie in the target voxel; semantics: occupied if any child "
+                 "is, class = most frequent among occupied children, ties by TIE_PRECEDENCE " + " > ".join(TIE_PRECEDENCE)
+                 + "; masks: observed if any child is; instance: most frequent id among children of the chosen class; "
+                   "flow: their mean; voxels without children: empty, unobserved")
 
 
 class GridError(ValueError):

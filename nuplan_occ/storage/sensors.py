@@ -43,7 +43,7 @@ SENSOR_SCHEMA = pa.schema([
     ("image_filename", pa.string()),
     ("image_path", pa.string()),
     ("image_timestamp_us", pa.int64()),
-    ("image_ego_to_global", MATRIX_4),
+    ("image_ego_to_frame_ego", MATRIX_4),
 ])
 """Columns of a sensor sidecar (nuplan_occ.sensors documents each); image_* are null where no image matched."""
 
@@ -117,7 +117,7 @@ class SensorSidecars:
 def frame_sensors(rows: list[dict]) -> dict:
     """One frame's sidecar rows as arrays: {"lidar_to_ego": (4, 4), "lidar_filename", "cameras": {channel: {"camera_token",
     "width", "height", "intrinsic" (3, 3), "distortion" (5,), "camera_to_ego" (4, 4), "image_token",
-    "image_filename", "image_path", "image_timestamp_us", "image_ego_to_global" (4, 4) or None}}}, float64."""
+    "image_filename", "image_path", "image_timestamp_us", "image_ego_to_frame_ego" (4, 4) or None}}}, float64."""
     def matrix(values: list | None, n: int) -> np.ndarray | None:
         return None if values is None else np.asarray(values, dtype=np.float64).reshape(n, n)
 
@@ -126,7 +126,7 @@ def frame_sensors(rows: list[dict]) -> dict:
         cameras[row["channel"]] = {
             "camera_token": row["camera_token"], "width": row["width"], "height": row["height"],
             "intrinsic": matrix(row["intrinsic"], 3), "distortion": np.asarray(row["distortion"], dtype=np.float64),
-            "camera_to_ego": matrix(row["camera_to_ego"], 4), "image_ego_to_global": matrix(row["image_ego_to_global"], 4),
+            "camera_to_ego": matrix(row["camera_to_ego"], 4), "image_ego_to_frame_ego": matrix(row["image_ego_to_frame_ego"], 4),
             **{k: row[k] for k in ("image_token", "image_filename", "image_path", "image_timestamp_us")},
         }
     return {"lidar_to_ego": matrix(rows[0]["lidar_to_ego"], 4), "lidar_filename": rows[0]["lidar_filename"],

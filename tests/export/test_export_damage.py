@@ -12,7 +12,7 @@ import pytest
 from nuplan_occ.export.formats import export_dataset, invert_occ3d
 from nuplan_occ.storage import read_manifest
 from nuplan_occ.storage.errors import DamagedManifestWarning, DatasetFormatError
-from tools_world import LOG, SMALL, small_scene, token_of, write_dataset
+from tools_world import SMALL, small_scene, token_of, write_dataset
 
 N_FRAMES = 5
 
@@ -44,7 +44,7 @@ def test_bad_frames_are_skipped_and_named_the_rest_exported(source, tmp_path):
         (rows[1]["key"], token_of(1), "semantics"), (rows[3]["key"], token_of(3), "mask_lidar")]
     assert all("checksum" in s["problem"] or "crc32" in s["problem"] for s in summary["skipped"])
     for i, arrays in enumerate(frames):
-        path = tmp_path / "out" / LOG / token_of(i) / "labels.npz"
+        path = tmp_path / "out" / "gts" / f"scene-{'ab' * 8}" / token_of(i) / "labels.npz"
         assert path.exists() == (i not in (1, 3))
         if path.exists():
             with np.load(path) as npz:
@@ -71,7 +71,7 @@ def test_cli_reports_each_skipped_frame_in_one_line_and_exits_non_zero(source, t
     root, _, rows = source
     _flip(root, rows[2], "semantics")
     with pytest.raises(SystemExit) as done:
-        app(["export", str(root), str(tmp_path / "out"), "--format", "uniscene"], prog_name="nuplan-occ")
+        app(["export", str(root), str(tmp_path / "out"), "--format", "uniscene", "--frame", "ego"], prog_name="nuplan-occ")
     err = capsys.readouterr().err.splitlines()
     assert done.value.code == 1
     assert err[0].startswith(f"skipped frame {rows[2]['key']}, member semantics: ") and "crc32" in err[0]

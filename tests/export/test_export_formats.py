@@ -9,7 +9,7 @@ from nuplan_occ.export.formats import (
     OCC3D_FREE, OCC3D_REMAP, ExportError, export_dataset, invert_occ3d, to_occ3d, uniscene_folder,
 )
 from nuplan_occ.labels import LABELS
-from tools_world import LOG, SMALL, small_scene, token_of, write_dataset
+from tools_world import SMALL, small_scene, token_of, write_dataset
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,7 @@ def test_occ3d_round_trip(source, tmp_path):
     assert summary["frames_without"] == {"mask_lidar": 1, "mask_camera": 2}
     assert {(r["id"], r["occ3d_id"]) for r in summary["remap"]} == set(OCC3D_REMAP.items())
     for i, arrays in enumerate(frames):
-        with np.load(tmp_path / "occ3d" / LOG / token_of(i) / "labels.npz") as npz:
+        with np.load(tmp_path / "occ3d" / "gts" / f"scene-{'ab' * 8}" / token_of(i) / "labels.npz") as npz:
             assert npz["semantics"].dtype == np.uint8 and npz["semantics"].shape == SMALL.shape
             assert np.array_equal(invert_occ3d(npz["semantics"]), arrays["semantics"])
             assert np.count_nonzero(npz["semantics"] == OCC3D_FREE) == np.count_nonzero(arrays["semantics"] == 0)
@@ -63,9 +63,14 @@ def test_uniscene_round_trip(source, tmp_path):
     root, frames = source
     summary = export_dataset(root, tmp_path / "uni", "uniscene")
     assert all(r["id"] == r["uniscene_id"] for r in summary["remap"])
+    assert [r["uniscene_name"] for r in summary["remap"] if r["id"] == 13] == ["sidewalk"]
+    # no sensor metadata: the grids stay in the ego frame, and the summary says so
+    assert summary["frame"] == "ego" and summary["sensors"] is False and "no sensor metadata" in summary["warnings"][0]
     for i, arrays in enumerate(frames):
         dense = np.load(tmp_path / "uni" / uniscene_folder(SMALL.shape) / f"{token_of(i)}.npy")
         assert dense.dtype == np.uint8 and np.array_equal(dense, arrays["semantics"])
+    with pytest.raises(ExportError, match="no sensor metadata"):
+        export_dataset(root, tmp_path / "uni2", "uniscene", frame="lidar")
     assert uniscene_folder(SMALL.shape) == "nuplan_quantized_32_32_8"
 
 
