@@ -4,7 +4,7 @@ SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libxrender1 libgomp1
 DEMO_OUT ?= demo_out
 
-.PHONY: setup system-packages demo test bench bench-manifest bench-scale bench-real-size clean
+.PHONY: setup system-packages demo test bench bench-manifest bench-scale bench-real-size bench-quality clean
 
 setup: .setup.stamp
 
@@ -29,14 +29,19 @@ bench: setup
 bench-manifest: setup
 	$(PYTHON) -m benchmarks.manifest --out bench
 
-# Real-scale yardstick (issue #16): city logs of one 5 / 10 / 20 s scene, one worker; bench/report-scale.{json,md}.
+# Real-scale yardstick: city logs of one 5 / 10 / 20 s scene, one worker; bench/report-scale.{json,md}.
 bench-scale: setup
 	nice -n 5 $(PYTHON) -m benchmarks.scale
 
-# Real-size log (issue 54): a 20-minute log's row counts without a box index; open and load times, peak RSS,
+# Real-size log: a 20-minute log's row counts without a box index; open and load times, peak RSS,
 # before (git archive of the old revision) and after; bench/report-real-size-log.{json,md}.
 bench-real-size: setup
 	nice -n 5 $(PYTHON) -m benchmarks.real_size_log --work bench/real_size --out bench
+
+# Quality matrix (issue #53): 10 synthetic worlds of 20 s (tuning / held-out seeds, imperfect logs, another layout);
+# bench/report-quality.{json,md}. QUALITY_ARGS e.g. --worlds city-s7 --seconds 5.
+bench-quality: setup
+	nice -n 5 $(PYTHON) -m benchmarks.quality_matrix $(QUALITY_ARGS)
 
 clean:
 	rm -rf $(DEMO_OUT) bench/work bench/data bench/manifest_work bench/real_size .setup.stamp

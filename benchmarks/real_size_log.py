@@ -1,4 +1,4 @@
-"""`make bench-real-size`: opening and loading a log of a real log's size (issue 54).
+"""`make bench-real-size`: opening and loading a log of a real log's size.
 
 A real 20-minute nuPlan log holds about 24 k lidar_pc, 119 k ego_pose, 2.6 M lidar_box and 96 k image rows
 in 65 scenes, and its DB declares no index on lidar_box.lidar_pc_token. The bench writes one 20 s scene
@@ -170,7 +170,7 @@ def report(rows: dict, counts: dict, generation_s: float, db_mb: float) -> str:
                 f"{np.median(loads):.2f} / {np.median(cpu):.2f}", " ".join(f"{c:.2f}" for c in cpu),
                 f"{r['peak_mb']:.0f}"]
 
-    lines = ["# Opening and loading a real-size log (issue 54)", "",
+    lines = ["# Opening and loading a real-size log", "",
              f"Inflated log: {counts['scenes']} scenes of {SCENE_SECONDS:g} s, {counts['lidar_pc']} lidar_pc, "
              f"{counts['ego_pose']} ego_pose, {counts['lidar_box']} lidar_box, {counts['image']} image rows; "
              f"{db_mb:.0f} MB; no index on lidar_box.lidar_pc_token; generated in {generation_s:.0f} s. "

@@ -113,39 +113,6 @@ def sample(
     console.print(f"{n} frames of {len(scenes)} scenes written to {out}")
 
 
-@app.command()
-def bench(
-    out: Path = typer.Option(..., help="Directory for bench.json, the curve PNG and the synthetic dataset."),
-    data: Optional[Path] = typer.Option(None, help="Dataset root (default: a synthetic one in --out)."),
-    steps: int = typer.Option(200, min=1),
-    config: list[str] = typer.Option(["tiny", "tiny512"], help="Configs to compare."),
-    crop: Optional[int] = typer.Option(None, help="x/y crop in cells (default: full grid)."),
-    clip_len: list[int] = typer.Option([], help="Clip lengths T to compare (default: each config's own); "
-                                       "results are then named <config>@T<T>."),
-    seed: int = typer.Option(0),
-) -> None:
-    """VAE reconstruction bench: IoU / mIoU on held-out frames, loss curves, compression ratios."""
-    from benchmarks.occgen_bench import make_synthetic_dataset, run_vae_bench, write_curve_png
-
-    root = str(data) if data is not None else make_synthetic_dataset(str(out / "synthetic"))
-    runs = [(name, None, name) for name in config] if not clip_len else [
-        (name, t, f"{name}@T{t}") for name in config for t in clip_len]
-    results = {}
-    with _progress() as progress:
-        for name, t, label in runs:
-            bar = progress.add_task(f"vae {label}", total=steps, info="")
-            results[label] = run_vae_bench(root, steps, name, crop, seed, clip_len=t,
-                                           on_step=lambda s, r, b=bar: progress.update(b, completed=s,
-                                                                                      info=f"loss {r['total']:.3f}"))
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench.json").write_text(json.dumps(results, indent=1))
-    write_curve_png({f"{k} (ratio {v['compression_ratio']:g})": v["losses"] for k, v in results.items()},
-                    out / "vae_loss.png", "occgen VAE training loss (CE + Lovasz + KL)")
-    for label, r in results.items():
-        console.print(f"{label}: ratio {r['compression_ratio']:g}, IoU {r['iou']:.3f}, mIoU {r['miou']:.3f} "
-                      f"on {r['frames_scored']} held-out frames, loss {r['losses'][0]:.3f} -> {r['losses'][-1]:.3f}")
-
-
 def _register_part2() -> None:
     """Camera maps and LiDAR generation commands (occgen part 2: render-maps, lidar, lidar-train, eval-lidar)."""
     from occgen.cli_sensors import register

@@ -1,4 +1,4 @@
-"""Finding log DBs, sensor blobs and maps under a nuPlan data root (format reference, section 1).
+"""Finding log DBs, sensor blobs and maps under a nuPlan data root (the released layout below).
 
 Released layout: <root>/nuplan-v1.1/splits/<split>/<log>.db, <root>/nuplan-v1.1/sensor_blobs/<log>/...,
 <root>/maps/<map_name>/<version>/map.gpkg. Configs disagree on where splits live, so DBs are globbed.

@@ -1,4 +1,4 @@
-"""nuPlan GPKG maps (format reference, section 6): a pure-sqlite3 writer and a pyogrio-based reader.
+"""nuPlan GPKG maps: a pure-sqlite3 writer and a pyogrio-based reader.
 
 Geometries are stored in EPSG:4326 (x = lon, y = lat) and exposed in the map's projected CRS, the UTM
 zone named by the `meta` table's projectedCoordSystem row ("global" frame, metres), as the devkit does.
@@ -26,7 +26,7 @@ LABEL_LAYERS: tuple[str, ...] = (
     "road_segments", "intersections", "generic_drivable_areas", "carpark_areas", "lanes_polygons", "walkways",
     "crosswalks", "boundaries", "stop_polygons",
 )
-"""Vector layers used for BEV semantics (road, other-ground, road-line; format reference 6.5)."""
+"""Vector layers used for BEV semantics (road, other-ground, road-line)."""
 
 MAP_VERSION_FILE = "nuplan-maps-v1.0.json"
 _STORAGE_SRS = 4326
@@ -116,7 +116,7 @@ def _write_layer(db: sqlite3.Connection, name: str, layer: MapLayer, epsg: int) 
 
 
 def write_map_gpkg(path: str | Path, epsg: int, layers: dict[str, MapLayer]) -> None:
-    """Write a GPKG map (format reference 6.6): geometries given in UTM EPSG:<epsg>, stored in EPSG:4326;
+    """Write a GPKG map as nuPlan lays it out: geometries given in UTM EPSG:<epsg>, stored in EPSG:4326;
     a `meta` table with geographicCoordSystem epsg:4326 and projectedCoordSystem epsg:<epsg>.
     attributes become columns (an integer "fid" attribute, if given, sets the feature ids)."""
     path = Path(path)

@@ -1,4 +1,4 @@
-"""The merged LiDAR blob format: binary PCD v0.7 (format reference, section 3).
+"""The merged LiDAR blob format: binary PCD v0.7.
 
 Points are returned in the "lidar" frame, the frame of the DB's `MergedPointCloud` lidar row (metres).
 The record layout is built from the header's FIELDS / SIZE / TYPE (little-endian, packed); only
@@ -194,7 +194,7 @@ def usable_points(cloud: PointCloud, source: str) -> tuple[PointCloud, DroppedPo
 def encode_pcd(cloud: PointCloud) -> bytes:
     """The devkit-compatible binary PCD of a cloud in the "lidar" frame (all six fields float32).
 
-    Header as in the format reference, section 3.5; records x y z intensity ring lidar_info.
+    Header as nuPlan's MergedPointCloud blobs carry it; records x y z intensity ring lidar_info.
     """
     if cloud.frame != "lidar":
         raise ValueError(f"encode_pcd expects points in the 'lidar' frame, got {cloud.frame!r}")

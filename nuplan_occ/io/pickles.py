@@ -1,7 +1,7 @@
 """Safe loading of the pickled calibration columns (lidar/camera translation, rotation, intrinsic, distortion).
 
-The devkit stores these as pickles of plain lists or of its own list subclasses (format reference, 2.1 and
-2.6). Loading them with `pickle.loads` would execute any callable a crafted DB names, so a restricted
+The devkit stores these as pickles of plain lists or of its own list subclasses.
+Loading them with `pickle.loads` would execute any callable a crafted DB names, so a restricted
 unpickler resolves only containers, numbers and numpy arrays; every other global is refused before it can
 be called.
 """

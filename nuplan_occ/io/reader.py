@@ -1,4 +1,4 @@
-"""Reads one nuPlan log DB (SQLite, format reference section 2) and its LiDAR blobs, without the devkit.
+"""Reads one nuPlan log DB (SQLite) and its LiDAR blobs, without the devkit.
 
 Frames (see nuplan_occ.io.types): "global" = map UTM metres; "ego" = rear axle at a frame's time;
 "lidar" = frame of the DB's MergedPointCloud lidar row (T_ego_from_lidar = its stored extrinsic).
@@ -8,7 +8,7 @@ The DB is opened read-only and never written (no index is created in it); column
 (extra columns are ignored), NULL chain ends become None. Large tables are read as columns, never as one
 Python object per row: ego_pose at opening, image on first use, lidar_box one time window (a scene) per
 query. A frame's pose is interpolated from the ego_pose table at the lidar_pc timestamp, because ego_pose
-rows linked by token carry slightly different timestamps (format reference, 2.1).
+rows linked by token carry slightly different timestamps.
 
 Every value is checked where it enters, and a bad one costs only what it touches:
 - ego_pose rows with a NULL, non-finite or absurd position (beyond MAX_GLOBAL_COORD_M) or quaternion (norm
@@ -337,7 +337,7 @@ class NuplanLog:
                               "by token is used")
         keep = usable & ~repeated
         return EgoPoseTable(tokens=tokens[keep], timestamps_us=times_int[keep], xyz=xyz[keep].copy(),
-                            quaternions=q[keep] / norm[keep, None])
+                            quaternions=q[keep])  # as stored: slerp and quaternion_to_matrix normalise
 
     def _read_scenes(self) -> list[SceneRecord]:
         rows = self._select("scene", ("token", "name", "goal_ego_pose_token", "roadblock_ids"), "ORDER BY name")

@@ -1,6 +1,6 @@
 """Plain data records shared by the nuPlan reader, the writer, the synthetic worlds and the pipeline.
 
-Frames named in this module (see ../shared/reference/nuplan_format.md, section 2.4):
+Frames named in this module:
 - "global": the map's projected CRS (UTM metres) of the log's city.
 - "ego":    nuPlan rear axle at the record's timestamp: x forward, y left, z up.
 - "lidar":  the frame of the `MergedPointCloud` lidar row; ego_from_lidar is that row's extrinsic.
@@ -22,7 +22,7 @@ from nuplan_occ.geometry import (
 NUPLAN_CATEGORIES: tuple[str, ...] = (
     "vehicle", "pedestrian", "bicycle", "traffic_cone", "barrier", "czone_sign", "generic_object",
 )
-"""The 7 `category.name` strings of nuPlan (format reference, section 5)."""
+"""The 7 `category.name` strings of nuPlan."""
 
 LIDAR_NAMES: dict[int, str] = {0: "top", 1: "right_a_pillar", 2: "left_a_pillar", 3: "back", 4: "front"}
 """`lidar_info` value of a merged-cloud point -> the LiDAR that produced it."""
@@ -190,8 +190,8 @@ class EgoPoseTable:
     """The usable `ego_pose` rows of a log as columns, in time order (one row per timestamp).
 
     tokens (N,) str: lowercase hex of the DB's BLOB tokens; timestamps_us (N,) int64, strictly increasing;
-    xyz (N, 3) rear-axle position in the "global" frame, m; quaternions (N, 4) unit [w, x, y, z] of
-    T_global_from_ego's rotation.
+    xyz (N, 3) rear-axle position in the "global" frame, m; quaternions (N, 4) [w, x, y, z] of
+    T_global_from_ego's rotation as stored, within the reader's tolerance of unit norm (normalised where used).
     """
 
     tokens: np.ndarray

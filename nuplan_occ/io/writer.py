@@ -1,6 +1,6 @@
-"""Writes a LogContent as a nuPlan log: the SQLite DB of the format reference (section 2.2) plus PCD blobs.
+"""Writes a LogContent as a nuPlan log: the SQLite DB of nuPlan's log schema plus PCD blobs.
 
-Layout under data_root (format reference, section 1):
+Layout under data_root (as in the released nuPlan data):
   <data_root>/nuplan-v1.1/splits/<split>/<meta.logfile>.db
   <data_root>/nuplan-v1.1/sensor_blobs/<frame.filename>        (binary PCD, points in the "lidar" frame)
 Tokens are hex strings in LogContent and 8-byte (or whatever length the hex gives) BLOBs in the DB;
@@ -67,7 +67,7 @@ CREATE TABLE traffic_light_status (
     token BLOB NOT NULL, lidar_pc_token BLOB NOT NULL REFERENCES lidar_pc(token), lane_connector_id INTEGER,
     status VARCHAR(8), PRIMARY KEY (token));
 """
-"""The 12 tables of the format reference (2.2), and no index the devkit's schema does not declare (the reader
+"""The 12 tables of nuPlan's log schema, and no index the devkit's schema does not declare (the reader
 must be fast without one)."""
 
 PointSource = Callable[[LidarFrame], PointCloud | None]

@@ -20,8 +20,11 @@ from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from nuplan_occ import __version__
-from nuplan_occ.io.reader import NuplanLog
+from nuplan_occ.io.errors import PoseGapError
+from nuplan_occ.io.reader import NuplanLog, open_log
 from nuplan_occ.pipeline.scene import SceneTask, output_slots
 from nuplan_occ.storage import DatasetWriter, FrameRecord
 
@@ -45,17 +48,29 @@ def scene_writer(task: SceneTask) -> DatasetWriter:
 
 
 def failed_scene_rows(task: SceneTask, reason: str) -> list[dict]:
-    """Write failure rows for every output frame of a scene that could not be built at all."""
+    """Write failure rows for every output frame of a scene that could not be built at all (a frame without a
+    usable logged pose gets the nearest one, or the identity when the log has none: its row says it failed)."""
     load = task.params["load"]
-    with NuplanLog(task.db_path, task.sensor_root) as log:
-        own = log.frames_of_scene(task.scene_token)
-        slots = output_slots(own, load.rate_hz, load.sweep_rate_hz)
-        records = [FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
-                               scene_name=task.scene_name, frame_index=f.index, token=f.token,
-                               timestamp_us=f.timestamp_us, ego_to_global=log.frame_pose(f), arrays={},
-                               columns={"output_index": slots[f.token]}, status="failed", failure_reason=reason)
-                   for f in own if f.token in slots]
+    log = open_log(task.db_path, task.sensor_root)
+    own = log.frames_of_scene(task.scene_token)
+    slots = output_slots(own, load.rate_hz, load.sweep_rate_hz)
+    records = [FrameRecord(log=task.log_name, log_id=task.log_id, scene_token=task.scene_token,
+                           scene_name=task.scene_name, frame_index=f.index, token=f.token,
+                           timestamp_us=f.timestamp_us, ego_to_global=_stand_in_pose(log, f), arrays={},
+                           columns={"output_index": slots[f.token]}, status="failed", failure_reason=reason)
+               for f in own if f.token in slots]
     return DatasetWriter(task.out_root, metadata={"params": {}}).write_shard(task.shard_key, records)
+
+
+def _stand_in_pose(log: NuplanLog, frame) -> np.ndarray:
+    """The frame's logged pose, else the nearest usable one, else the identity (T_global_from_ego)."""
+    try:
+        return log.frame_pose(frame)
+    except PoseGapError:
+        try:
+            return log.nearest_pose(frame.timestamp_us)
+        except PoseGapError:
+            return np.eye(4)
 
 
 def publish_scene(task: SceneTask, rows: list[dict], keep_work: str, kept: frozenset[str]) -> None:

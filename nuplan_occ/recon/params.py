@@ -19,7 +19,9 @@ class ReconParams:
 
     Shared by every method:
     - mask_distance: surface farther than this from every input point is removed (m). NKSR trims
-      at 2 voxels; this is the analytic distance-to-points version.
+      at 2 voxels; this is the analytic distance-to-points version. The default keeps hole filling for
+      generic scans; the build sets its own (the reconstruct stage's mask_distance_m and
+      object_mask_distance_m), trimming closer where far LiDAR rings leave the aggregate sparse.
     - normal_knn: neighbours of the PCA normal estimate (`normals.estimate_normals`); normals are flipped
       to face each point's sensor origin.
     - normal_cell_m: one normal is estimated per cube of this edge, at its points' centroid, and shared by

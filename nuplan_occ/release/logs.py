@@ -17,7 +17,7 @@ from urllib.parse import quote
 import numpy as np
 
 from nuplan_occ.io.data_root import resolve_logs, sensor_root_for
-from nuplan_occ.io.errors import NuplanFormatError
+from nuplan_occ.io.errors import NuplanFormatError, PoseGapError
 from nuplan_occ.io.reader import NuplanLog
 from nuplan_occ.pipeline.frame_columns import agent_speed_columns
 from nuplan_occ.pipeline.scene import log_id_of
@@ -29,7 +29,7 @@ SPEED_WINDOW_US = 50_000
 @dataclass
 class FrameMeta:
     """What the logs say about one lidar_pc token. ego_to_global: T_global_from_ego (4, 4) at the
-    sweep's timestamp; T_ego_from_lidar: the MergedPointCloud extrinsic; columns: ego_speed (m/s),
+    sweep's timestamp; T_ego_from_lidar: the MergedPointCloud extrinsic; columns: ego_speed (m/s; NaN where the log has no usable pose around the frame),
     max_agent_speed (m/s), n_moving_agents, as our builds' filter columns."""
 
     log: str
@@ -123,8 +123,11 @@ class LogIndex:
         frame = frames[token]
         name = log.meta.logfile or log.path.stem
         t = frame.timestamp_us
-        before, after = log.ego_pose_at(t - SPEED_WINDOW_US), log.ego_pose_at(t + SPEED_WINDOW_US)
-        ego_speed = float(np.linalg.norm((after[:2, 3] - before[:2, 3])) / (2e-6 * SPEED_WINDOW_US))
+        try:
+            before, after = log.ego_pose_at(t - SPEED_WINDOW_US), log.ego_pose_at(t + SPEED_WINDOW_US)
+            ego_speed = float(np.linalg.norm((after[:2, 3] - before[:2, 3])) / (2e-6 * SPEED_WINDOW_US))
+        except PoseGapError:  # the log has no usable pose around the frame: the speed is unknown
+            ego_speed = float("nan")
         return FrameMeta(log=name, log_id=log_id_of(name), scene_token=frame.scene_token or None,
                          scene_name=scene_names.get(frame.scene_token), frame_index=frame.index, timestamp_us=t,
                          ego_to_global=log.frame_pose(frame), T_ego_from_lidar=log.lidar.T_ego_from_lidar,

@@ -25,7 +25,7 @@ def run(inputs: dict, params: Any) -> dict:
     scene = inputs["scene"]
     poses = inputs["registration"].poses
     built = [i for i in scene.ok_indices() if scene.sweeps[i].is_output]
-    layers, map_status, alignment, stop_lines = None, "no map file found for the log's map", None, None
+    layers, map_status, alignment, stop_lines = None, scene.map_problem or "no map file found for the log's map", None, None
     if scene.map_path is not None and built:
         middle, half_size = map_window(poses, built, MAP_MARGIN_M)
         layers = NuplanMap(scene.map_path).layers_in_window(middle, half_size, LABEL_LAYERS)
