@@ -92,9 +92,10 @@ def camera_to_lidar(camera: dict, lidar_to_ego: np.ndarray) -> np.ndarray:
     return invert_transform(lidar_to_ego) @ ego_from_camera
 
 
-def add_sensors(root: str, data_root: str | Path) -> dict:
+def add_sensors(root: str, data_root: str | Path, logs: Sequence[str] | None = None) -> dict:
     """Write the sensor sidecars of the dataset at `root` from the nuPlan logs under `data_root` (DBs found
-    anywhere below it, sensor_blobs/ located as the build locates it). Returns {"scenes": written, "frames",
+    anywhere below it, sensor_blobs/ located as the build locates it); logs: only these log names (None: every
+    log of the dataset; e.g. the logs one shard of a build wrote). Returns {"scenes": written, "frames",
     "rows", "without_image": rows with no image matched, "problems": [one line per log not found or not
     readable; its scenes get no sidecar]}. Frames of unknown log (an imported release without its logs) are
     left out."""
@@ -104,7 +105,8 @@ def add_sensors(root: str, data_root: str | Path) -> dict:
     table = ds.columns(["log", "scene_token", "token", "timestamp_us"]).to_pylist()
     scenes: dict[str, dict[str, list[tuple[str, int]]]] = {}
     for row in table:
-        if row["log"] is not None and row["scene_token"] is not None and row["timestamp_us"] is not None:
+        if (row["log"] is not None and row["scene_token"] is not None and row["timestamp_us"] is not None
+                and (logs is None or row["log"] in logs)):
             scenes.setdefault(row["log"], {}).setdefault(row["scene_token"], []).append(
                 (row["token"], int(row["timestamp_us"])))
     summary = {"scenes": 0, "frames": 0, "rows": 0, "without_image": 0, "problems": []}
