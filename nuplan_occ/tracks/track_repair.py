@@ -9,11 +9,11 @@ empty tracks'; it adds interpolated boxes in a track's short gaps (their lidar_b
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from nuplan_occ.geometry import wrap_angle
+from nuplan_occ.geometry import invert_transform, wrap_angle
 from nuplan_occ.io.types import Boxes
 
 
@@ -190,6 +190,15 @@ def repair_tracks(boxes: list[Boxes], times: np.ndarray, params: TrackRepairPara
     return out, log
 
 
+def repaired_sweeps(sweeps: list, params: TrackRepairParams) -> tuple[list, RepairLog]:
+    """A scene's sweeps (nuplan_occ.pipeline.scene.Sweep, time order) with their stored boxes repaired by
+    `repair_tracks` (boxes_global) and moved into each sweep's ego frame with its logged pose (boxes)."""
+    times = np.array([s.timestamp_us for s in sweeps], np.float64) / 1e6
+    repaired, log = repair_tracks([s.boxes_global for s in sweeps], times, params)
+    return [replace(s, boxes_global=b, boxes=b.transformed(invert_transform(s.logged_pose), "ego"))
+            for s, b in zip(sweeps, repaired)], log
+
+
 def empty_tracks(box_frame_points: dict[str, list[np.ndarray]], heights: dict[str, float], clearance_m: float,
                  min_points: int) -> set[str]:
     """Tracks whose boxes hold fewer than min_points points higher than clearance_m above their box's bottom,
@@ -225,3 +234,61 @@ def fitted_sizes(box_frame_points: dict[str, list[np.ndarray]], sizes: dict[str,
         if np.any(new > size):
             grown[track] = new
     return grown
+
+
+def track_views(boxes: dict[int, Boxes], points: dict[int, dict[str, tuple]]) -> dict[str, list[np.ndarray]]:
+    """track -> its box-frame points per sweep, from sweep -> Boxes and sweep -> track -> (points, ...)."""
+    views: dict[str, list[np.ndarray]] = {}
+    for i, b in boxes.items():
+        for track in b.track_tokens:
+            views.setdefault(track, []).append(points[i].get(track, (np.zeros((0, 3)),))[0])
+    return views
+
+
+def track_heights(boxes: dict[int, Boxes]) -> dict[str, float]:
+    """track -> the median height (m) of its boxes, from sweep -> Boxes."""
+    heights: dict[str, list[float]] = {}
+    for b in boxes.values():
+        for track, size in zip(b.track_tokens, b.sizes):
+            heights.setdefault(track, []).append(float(size[2]))
+    return {track: float(np.median(h)) for track, h in heights.items()}
+
+
+def without_tracks(boxes: Boxes, tracks: set[str]) -> Boxes:
+    """The boxes of tracks not in `tracks`."""
+    if not tracks:
+        return boxes
+    return boxes.subset(np.array([t not in tracks for t in boxes.track_tokens], dtype=bool))
+
+
+def fitted_boxes(boxes: dict[int, Boxes], xyz_of, origin: np.ndarray, margin_m: float, floor_clearance_m: float,
+                 categories: tuple[str, ...]) -> dict[int, Boxes]:
+    """sweep -> Boxes (ego frames) with the boxes of `categories` resized by `fitted_sizes` to their tracks'
+    points gathered in the boxes grown by margin_m; xyz_of(i): sweep i's points (N, 3), ego frame (read once
+    per sweep); origin: the sensor origin (3,), ego frame."""
+    from nuplan_occ.tracks.scene_tracks import points_per_box
+
+    views: dict[str, list[np.ndarray]] = {}
+    sizes: dict[str, list[np.ndarray]] = {}
+    for i, b in boxes.items():
+        chosen = np.array([c in categories for c in b.categories], dtype=bool)
+        if not chosen.any():
+            continue
+        grown = b.subset(chosen)
+        for track, size in zip(grown.track_tokens, grown.sizes):
+            sizes.setdefault(track, []).append(size)
+        grown = replace(grown, sizes=grown.sizes + 2.0 * margin_m)
+        for track, (points, _) in points_per_box(xyz_of(i), grown, origin).items():
+            views.setdefault(track, []).append(points)
+    median = {track: np.median(np.stack(s), axis=0) for track, s in sizes.items()}
+    fitted = fitted_sizes(views, median, margin_m, floor_clearance_m)
+    if not fitted:
+        return boxes
+    out = {}
+    for i, b in boxes.items():
+        new = b.sizes.copy()
+        for k, track in enumerate(b.track_tokens):
+            if track in fitted:
+                new[k] = np.maximum(new[k], fitted[track])
+        out[i] = replace(b, sizes=new)
+    return out
