@@ -4,7 +4,8 @@ Grids are arrays indexed [x, y, z]. By default ("--frame", "--grid" unset) the o
 (ego frame = nuPlan rear axle, x forward, y left, z up; 400 x 400 x 32 voxels of 0.25 m over x, y in
 [-50, 50) m, z in [-3, 5) m) and the uniscene export moves it into the LiDAR frame, as UniScene v2's grids are
 (same bounds and voxel size around the LiDAR; `regrid.to_lidar_frame`, which needs the dataset's sensor
-metadata). frame "ego" | "lidar" chooses explicitly; grid "occ3d" | "<size>m" coarsens afterwards
+metadata: without it the uniscene grids stay in the ego frame and the summary's "warnings" says so, while an
+explicit frame "lidar" is refused). frame "ego" | "lidar" chooses explicitly; grid "occ3d" | "<size>m" coarsens afterwards
 (`regrid.coarsen`: rules and the uncovered part stated there). export.json records the frame and grid written.
 Besides the frame files, `<dest>/export.json` records the format, frame, grid, label remap and, per frame,
 log, scene, token, timestamp and T_global_from_ego (null where the dataset does not know them, e.g. an imported
