@@ -10,7 +10,8 @@ n-th sweep in phase with them, so with the defaults the sweeps between frames of
 sweeps are held out of the background; their object points are aggregated all the same).
 
 Poses: the build's refined poses (its `register` stage's cache entry, kept by the default work policy) when the
-work folder still holds them for the same inputs and params, else the log's poses (`qa_ray_poses`: refined |
+work folder still holds an entry whose poses are the build's (checked against the manifest's poses, so a code
+edit or a moved data root since the build does not lose them), else the log's poses (`qa_ray_poses`: refined |
 logged). The sweep's returns and the merged LiDAR origin are moved into the frame's ego frame by
 T_frame_from_sweep = inv(pose_frame) @ pose_sweep.
 
@@ -90,20 +91,45 @@ def sweep_in_frame(scene: SceneData, poses: np.ndarray, frame: int, sweep: int) 
             transform_points(T, scene.sweeps[sweep].xyz.astype(np.float64)))
 
 
-def scene_poses(task: SceneTask, pipeline: list, scene: SceneData) -> tuple[np.ndarray, str]:
-    """(poses (F, 4, 4) in scene sweep order, "refined" | "logged"): the register stage's cached poses when
-    the work folder holds them for these inputs and params, else the logged ones."""
+POSE_MATCH_M = 1e-6
+"""A cached registration is this build's when its relative poses of the output frames match the manifest's
+within this (m, and radians for the rotation entries)."""
+
+
+def matches_manifest(poses: np.ndarray, positions: list[int], manifest_poses: list[np.ndarray]) -> bool:
+    """Whether `poses` (F, 4, 4) at `positions` move the frames relative to the first of them as the manifest's
+    poses do (the manifest's are the refined poses left-multiplied by the scene's map alignment, so relative
+    poses are equal)."""
+    if not positions:
+        return False
+    relative = np.linalg.solve(poses[positions[0]][None], poses[positions])
+    published = np.linalg.solve(manifest_poses[0][None], np.stack(manifest_poses))
+    return bool(np.max(np.abs(relative - published)) <= POSE_MATCH_M)
+
+
+def scene_poses(task: SceneTask, pipeline: list, scene: SceneData, manifest_poses: dict[str, np.ndarray]
+                ) -> tuple[np.ndarray, str]:
+    """(poses (F, 4, 4) T_global_from_ego in scene sweep order, "refined" | "logged"): the registration of
+    the register stage's cache entries (the one keyed by these inputs, params and code first, then any other
+    in the scene's folder) whose poses match the manifest's (`matches_manifest`; manifest_poses: token ->
+    ego_to_global of the scene's ok frames), else the logged poses."""
     from nuplan_occ.pipeline.runner import stage_keys
 
     logged = np.stack([sweep.logged_pose for sweep in scene.sweeps])
     register = next((stage for stage in pipeline if "registration" in stage.outputs), None)
     if register is None:
         return logged, "logged"
-    entry = StageCache(task.work_dir).get(register.name, stage_keys(task, pipeline)[register.name])
-    poses = None if entry is None else getattr(entry.get("registration"), "poses", None)
-    if poses is None or np.shape(poses) != logged.shape:
-        return logged, "logged"
-    return np.asarray(poses, dtype=np.float64), "refined"
+    positions = [i for i, sweep in enumerate(scene.sweeps) if sweep.token in manifest_poses]
+    published = [manifest_poses[scene.sweeps[i].token] for i in positions]
+    cache, key = StageCache(task.work_dir), stage_keys(task, pipeline)[register.name]
+    others = sorted(path.name.removesuffix(".pkl.zst") for path in (task.work_dir / register.name).glob("*.pkl.zst"))
+    for candidate in [key, *(k for k in others if k != key)]:
+        entry = cache.get(register.name, candidate)
+        poses = None if entry is None else getattr(entry.get("registration"), "poses", None)
+        if poses is not None and np.shape(poses) == logged.shape and \
+                matches_manifest(np.asarray(poses, dtype=np.float64), positions, published):
+            return np.asarray(poses, dtype=np.float64), "refined"
+    return logged, "logged"
 
 
 def background_sweeps(task: SceneTask, pipeline: list, scene: SceneData) -> set[int] | None:
@@ -123,22 +149,37 @@ def frame_flags(row: dict) -> list[str]:
     return broken_rules({name: row.get(column) for column, name in FIGURES.items()})
 
 
+IDENTITY = ("log", "scene_name", "scene_token", "frame_index", "commit_id")
+"""Manifest columns copied into each sidecar row (with `token`)."""
+
+
+def scene_frames(ds) -> dict[tuple[str, str], dict[str, dict]]:
+    """The ok frames of an open dataset by scene: (log, scene_token) -> token -> its IDENTITY columns and its
+    manifest pose `ego_to_global` (4, 4)."""
+    table = ds.columns(["token", *IDENTITY, "ego_to_global"]).to_pylist()
+    out: dict[tuple[str, str], dict[str, dict]] = {}
+    for row in table:
+        pose = np.asarray(row.pop("ego_to_global"), dtype=np.float64).reshape(4, 4)
+        out.setdefault((row["log"], row["scene_token"]), {})[row.pop("token")] = {**row, "ego_to_global": pose}
+    return out
+
+
 def score_scene(task: SceneTask, pipeline: list, frames: dict[str, dict], semantics: Callable[[str], np.ndarray],
                 max_rays: int | None = MAX_RAYS) -> list[dict]:
-    """Sidecar rows of one scene: frames maps each ok frame's token to its manifest identity (log, scene_name,
-    scene_token, frame_index, commit_id); semantics(token) reads its grid. Loads the scene through the
-    pipeline's first stage (`run_stages`, which reads the scene's sweeps)."""
+    """Sidecar rows of one scene: frames is the scene's entry of `scene_frames`; semantics(token) reads a grid.
+    Loads the scene through the pipeline (`run_stages`; its first stage reads the scene's sweeps)."""
     from nuplan_occ.grid import DEFAULT_GRID
     from nuplan_occ.pipeline.runner import run_stages
 
     scene = run_stages(task, pipeline, ("scene",))["scene"]
-    poses, pose_source = scene_poses(task, pipeline, scene)
+    poses, pose_source = scene_poses(task, pipeline, scene, {t: f["ego_to_global"] for t, f in frames.items()})
     background = background_sweeps(task, pipeline, scene)
     rows = []
     for position, sweep in enumerate(scene.sweeps):
         if sweep.token not in frames:
             continue
-        row = {**frames[sweep.token], "token": sweep.token, "qa_ray_poses": pose_source, "qa_ray_problem": ""}
+        row = {"token": sweep.token, **{key: frames[sweep.token][key] for key in IDENTITY},
+               "qa_ray_poses": pose_source, "qa_ray_problem": ""}
         other = scoring_sweep(scene, position)
         if other is None:
             row["qa_ray_problem"] = f"no loaded sweep within {MAX_SWEEP_DT_S:g} s"
@@ -224,10 +265,7 @@ def qa_dataset(root: str, data_root: Path, pipeline: list, *, maps_root: str | N
     """Score every ok frame of the dataset at `root` (module docstring) and write the sidecar files; a scene
     whose file holds the same frames and commits (and max_rays) is reused unless `force`."""
     ds = open_dataset(root)
-    identity = ds.columns(["token", "log", "scene_name", "scene_token", "frame_index", "commit_id"]).to_pylist()
-    by_scene: dict[tuple[str, str], dict[str, dict]] = {}
-    for row in identity:
-        by_scene.setdefault((row["log"], row["scene_token"]), {})[row["token"]] = row
+    by_scene = scene_frames(ds)
     fs, base = resolve(root)
     result = QaResult()
     tasks = [t for t in scene_tasks(root, pipeline, data_root, maps_root, work_root)
@@ -235,8 +273,7 @@ def qa_dataset(root: str, data_root: Path, pipeline: list, *, maps_root: str | N
     for k, task in enumerate(tasks):
         if progress is not None:
             progress(k, len(tasks), task.scene_name)
-        frames = {token: {key: row[key] for key in ("log", "scene_name", "scene_token", "frame_index", "commit_id")}
-                  for token, row in by_scene[(task.log_name, task.scene_token)].items()}
+        frames = by_scene[(task.log_name, task.scene_token)]
         path = _sidecar_path(base, task.log_name, task.scene_name)
         rows = None if force else _read_sidecar(fs, path, max_rays)
         if rows is not None and {(r["token"], r["commit_id"]) for r in rows} == \

@@ -12,7 +12,8 @@ from typer.testing import CliRunner
 from nuplan_occ.cli.errors import CliApp
 from nuplan_occ.cli.qa import register
 from nuplan_occ.dataset import open_dataset
-from nuplan_occ.evaluation.ray_qa import QA_FOLDER, qa_dataset, scene_tasks, score_scene, scoring_sweep
+from nuplan_occ.evaluation.ray_qa import (QA_FOLDER, matches_manifest, qa_dataset, scene_frames, scene_tasks,
+                                          score_scene, scoring_sweep)
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import EMPTY, OTHER
 from nuplan_occ.pipeline.build import run_build
@@ -65,10 +66,8 @@ def _walls_removed(grid: np.ndarray) -> np.ndarray:
 def test_a_slab_ends_rays_early_and_removed_walls_are_holes(built):
     data_root, out = built
     ds = open_dataset(str(out))
-    frames = {r["token"]: r for r in ds.columns(["token", "log", "scene_name", "scene_token", "frame_index",
-                                                 "commit_id"]).to_pylist()}
     task = scene_tasks(str(out), PIPELINE, data_root, None, None)[0]
-    mine = {token: row for token, row in frames.items() if row["scene_token"] == task.scene_token}
+    mine = scene_frames(ds)[(task.log_name, task.scene_token)]
 
     def scores(damage):
         rows = score_scene(task, PIPELINE, mine, lambda token: damage(
@@ -127,3 +126,17 @@ def test_the_build_report_reads_the_sidecar_figures_and_judges_the_ray_rules(bui
     assert {"rays_early", "rays_holes", "rays_disagree"} <= set(flags.masks)
     frames.columns["qa_ray_early"][0] = 0.5  # a frame whose rays end early is flagged by that rule alone
     assert np.flatnonzero(evaluate_rules(frames.columns, frames.ok).masks["rays_early"]).tolist() == [0]
+
+
+def test_a_registration_matches_the_manifest_only_up_to_a_rigid_correction_on_the_left():
+    rng = np.random.default_rng(0)
+    poses = np.repeat(np.eye(4)[None], 5, axis=0)
+    poses[:, :3, 3] = rng.normal(size=(5, 3)) * 10
+    correction = np.eye(4)
+    correction[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    correction[:3, 3] = [3.0, -2.0, 0.5]
+    published = list(correction @ poses[[1, 2, 4]])
+    assert matches_manifest(poses, [1, 2, 4], published)
+    moved = poses.copy()
+    moved[2, 0, 3] += 1e-3  # one frame 1 mm elsewhere: another registration
+    assert not matches_manifest(moved, [1, 2, 4], published)
