@@ -36,6 +36,7 @@ NAMED_GRIDS = {"occ3d": GridSpec(x_min=-40.0, x_max=40.0, y_min=-40.0, y_max=40.
 """Grids a prediction may be stated on by name."""
 
 LABEL_SPACES = ("ours", "occ3d")
+"""The label ids a prediction may be written in: ours, or those of our occ3d export."""
 
 
 def parse_grid(text: str | None, default: GridSpec) -> GridSpec:
@@ -96,6 +97,8 @@ def load_prediction(path: Path, shape: tuple[int, int, int], labels: str = "ours
     if array.dtype.kind not in "iub" or (array.size and (array.min() < 0 or array.max() > 255)):
         raise EvaluationError(f"{path}: label ids must be integers 0-255 (dtype {array.dtype})")
     array = array.astype(np.uint8, copy=False)
+    if labels not in LABEL_SPACES:
+        raise EvaluationError(f"labels {labels!r} is not one of {', '.join(LABEL_SPACES)}")
     if labels == "occ3d":
         try:
             return invert_occ3d(array, where=str(path))

@@ -7,13 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.points import PointInputError
-from nuplan_occ.geometry import invert_transform, wrap_angle
-
-
-def _angle_deg(R: np.ndarray) -> np.ndarray:
-    """Rotation angles (degrees) of a stack of 3x3 rotations (..., 3, 3)."""
-    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+from nuplan_occ.geometry import invert_transform, rotation_angle_deg, wrap_angle
 
 
 @dataclass
@@ -52,7 +46,7 @@ def pose_errors(estimated: np.ndarray, truth: np.ndarray) -> PoseErrors:
         translation_m=np.linalg.norm(d, axis=1), horizontal_m=np.linalg.norm(d[:, :2], axis=1), z_m=d[:, 2],
         yaw_deg=np.degrees(np.asarray(wrap_angle(yaw), dtype=np.float64).reshape(-1)), tilt_deg=tilt,
         relative_translation_m=np.linalg.norm(rel_err[:, :3, 3], axis=1),
-        relative_rotation_deg=_angle_deg(rel_err[:, :3, :3]),
+        relative_rotation_deg=rotation_angle_deg(rel_err[:, :3, :3]),
     )
 
 

@@ -170,10 +170,6 @@ class SceneData:
             used = [used[i] for i in np.linspace(0, len(used) - 1, limit).round().astype(int)]
         return used
 
-    def points_of(self, positions: list[int]) -> MappedSequence:
-        """The xyz (N_i, 3) of the sweeps at `positions`, each read when asked for (they must have loaded)."""
-        return MappedSequence(list(positions), lambda position: self.sweeps[position].xyz)
-
     def clouds_of(self, positions: list[int]) -> MappedSequence:
         """The clouds (PointCloud, ego frame) of the sweeps at `positions`, each read when asked for."""
         return MappedSequence(list(positions), lambda position: self.sweeps[position].cloud)
