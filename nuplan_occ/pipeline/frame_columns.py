@@ -41,7 +41,7 @@ def frame_columns(scene, position: int, registration, speeds: np.ndarray, outlie
     """The columns of the frame at `position` of `scene` (SceneData) known before its grids: output_index (see
     `nuplan_occ.storage.clips`), filter columns (ego_speed from `speeds` (F,) m/s, `agent_speed_columns`) and
     QA figures: the refined pose's correction of the logged one (registration: the register stage's
-    Registration), the sweep's stored points, `outliers` (points the outlier test removed), the map's status
+    Registration), the sweep's stored points and those dropped on reading (non-finite, beyond a LiDAR's reach), `outliers` (points the outlier test removed), the map's status
     and the scene's map alignment (qa_map_*: NaN, or 0 points, without one)."""
     sweep = scene.sweeps[position]
     correction = invert_transform(sweep.logged_pose) @ registration.poses[position]  # in the logged ego frame
@@ -54,6 +54,7 @@ def frame_columns(scene, position: int, registration, speeds: np.ndarray, outlie
         "qa_pose_accepted": bool(registration.accepted[position]),
         "qa_pose_fitness": float(registration.fitness[position]),
         "qa_points": len(sweep.stored_cloud) if sweep.has_cloud else 0,
+        "qa_points_dropped": int(sweep.dropped_points),
         "qa_outliers_removed": int(outliers),
         "qa_map_status": map_status,
         "qa_map_aligned": bool(alignment is not None and alignment.applied),
