@@ -164,36 +164,41 @@ def scene_frames(ds) -> dict[tuple[str, str], dict[str, dict]]:
     return out
 
 
+def frame_ray_columns(scene: SceneData, position: int, poses: np.ndarray, semantics: np.ndarray,
+                      background: set[int] | None, max_rays: int | None = MAX_RAYS) -> dict:
+    """The qa_ray_* columns of the output frame at `position` (its grid `semantics`, uint8 [x, y, z] of the
+    default grid): the scored sweep, its time offset (s) and background membership (`background`: positions
+    whose background the grids hold, None when unknown), the counts and figures (FIGURES) and the flags;
+    qa_ray_problem says why a frame has no figures. poses: (F, 4, 4) T_global_from_ego in scene sweep order."""
+    from nuplan_occ.grid import DEFAULT_GRID
+
+    sweep = scene.sweeps[position]
+    other = scoring_sweep(scene, position)
+    if other is None:
+        return {"qa_ray_problem": f"no loaded sweep within {MAX_SWEEP_DT_S:g} s", "qa_ray_flags": ""}
+    figures = ray_consistency(semantics, *sweep_in_frame(scene, poses, position, other), DEFAULT_GRID, max_rays)
+    columns = {"qa_ray_sweep_token": scene.sweeps[other].token,
+               "qa_ray_sweep_dt_s": (scene.sweeps[other].timestamp_us - sweep.timestamp_us) / 1e6,
+               "qa_ray_sweep_in_background": None if background is None else other in background,
+               "qa_ray_returns": figures.n_returns, "qa_ray_scored": figures.n_scored,
+               **{column: getattr(figures, name) for column, name in FIGURES.items()}, "qa_ray_problem": ""}
+    columns["qa_ray_flags"] = ",".join(frame_flags(columns))
+    return columns
+
+
 def score_scene(task: SceneTask, pipeline: list, frames: dict[str, dict], semantics: Callable[[str], np.ndarray],
                 max_rays: int | None = MAX_RAYS) -> list[dict]:
     """Sidecar rows of one scene: frames is the scene's entry of `scene_frames`; semantics(token) reads a grid.
     Loads the scene through the pipeline (`run_stages`; its first stage reads the scene's sweeps)."""
-    from nuplan_occ.grid import DEFAULT_GRID
     from nuplan_occ.pipeline.runner import run_stages
 
     scene = run_stages(task, pipeline, ("scene",))["scene"]
     poses, pose_source = scene_poses(task, pipeline, scene, {t: f["ego_to_global"] for t, f in frames.items()})
     background = background_sweeps(task, pipeline, scene)
-    rows = []
-    for position, sweep in enumerate(scene.sweeps):
-        if sweep.token not in frames:
-            continue
-        row = {"token": sweep.token, **{key: frames[sweep.token][key] for key in IDENTITY},
-               "qa_ray_poses": pose_source, "qa_ray_problem": ""}
-        other = scoring_sweep(scene, position)
-        if other is None:
-            row["qa_ray_problem"] = f"no loaded sweep within {MAX_SWEEP_DT_S:g} s"
-        else:
-            row.update(qa_ray_sweep_token=scene.sweeps[other].token,
-                       qa_ray_sweep_dt_s=(scene.sweeps[other].timestamp_us - sweep.timestamp_us) / 1e6,
-                       qa_ray_sweep_in_background=None if background is None else other in background)
-            origin, returns = sweep_in_frame(scene, poses, position, other)
-            figures = ray_consistency(semantics(sweep.token), origin, returns, DEFAULT_GRID, max_rays)
-            row.update(qa_ray_returns=figures.n_returns, qa_ray_scored=figures.n_scored,
-                       **{column: getattr(figures, name) for column, name in FIGURES.items()})
-        row["qa_ray_flags"] = ",".join(frame_flags(row))
-        rows.append(row)
-    return rows
+    return [{**dict.fromkeys(SCHEMA.names), "token": sweep.token,
+             **{key: frames[sweep.token][key] for key in IDENTITY}, "qa_ray_poses": pose_source,
+             **frame_ray_columns(scene, position, poses, semantics(sweep.token), background, max_rays)}
+            for position, sweep in enumerate(scene.sweeps) if sweep.token in frames]
 
 
 @dataclass

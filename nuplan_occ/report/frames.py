@@ -38,7 +38,8 @@ def column_to_numpy(column: pa.ChunkedArray) -> np.ndarray:
 class BuildFrames:
     """columns: identity columns (as strings / float), every `qa_*` column (the ray-consistency ones from
     `nuplan-occ qa`'s sidecar files when the manifest lacks them), `nbytes` (stored bytes of the frame, all
-    members); poses (N, 4, 4) T_global_from_ego; class_hist (N, K) voxels per label id; ok (N,) bool; scenes: (start, stop) row ranges, one per scene, in (log, scene name) order."""
+    members); poses (N, 4, 4) T_global_from_ego; class_hist (N, K) voxels per label id; ok (N,) bool;
+    scenes: (start, stop) row ranges, one per scene, in (log, scene name) order."""
 
     columns: Columns
     poses: np.ndarray

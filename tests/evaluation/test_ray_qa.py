@@ -94,7 +94,8 @@ def test_the_cli_prints_the_summary_and_names_a_missing_data_root(built, tmp_pat
     with pytest.raises(SystemExit) as missing:
         app(["qa", str(out), "--data-root", str(tmp_path / "nowhere")], prog_name="nuplan-occ")
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert missing.value.code == 1 and lines == [f"nuplan-occ: error: {tmp_path / 'nowhere'}: data root folder not found"]
+    assert missing.value.code == 1
+    assert lines == [f"nuplan-occ: error: {tmp_path / 'nowhere'}: data root folder not found"]
 
 
 def _scene(*sweeps):

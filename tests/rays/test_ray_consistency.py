@@ -40,9 +40,9 @@ def test_rays_ending_on_the_wall_agree_with_no_depth_error():
 
 
 def test_a_slab_in_front_of_the_wall_makes_its_rays_early_by_the_gap():
-    """A slab at x in [10.0, 10.25) covering y in [-2, 2) at every height: rays through it end early by the distance from
-    where they enter it to the return (r - d, the same ratio of r for every ray: the slab is at x = 10.0);
-    the other rays still agree."""
+    """A slab at x in [10.0, 10.25) covering y in [-2, 2) at every height: rays through it end early by the
+    distance from where they enter it to the return (r - d, the same ratio of r for every ray: the slab is at
+    x = 10.0); the other rays still agree."""
     grid = _wall_grid()
     grid[_index(10.0), _index(-2.0, 1):_index(2.0, 1)] = OTHER
     returns = _wall_returns()
