@@ -32,7 +32,7 @@ import pyarrow as pa
 
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.io.data_root import resolve_logs, sensor_root_for
-from nuplan_occ.io.errors import NuplanFormatError, PoseGapError
+from nuplan_occ.io.errors import MissingLogError, NuplanFormatError, PoseGapError
 from nuplan_occ.io.reader import NuplanLog, leaves_folder
 from nuplan_occ.storage.sensors import SENSOR_SCHEMA, write_sidecar
 
@@ -110,12 +110,18 @@ def add_sensors(root: str, data_root: str | Path, logs: Sequence[str] | None = N
             scenes.setdefault(row["log"], {}).setdefault(row["scene_token"], []).append(
                 (row["token"], int(row["timestamp_us"])))
     summary = {"scenes": 0, "frames": 0, "rows": 0, "without_image": 0, "problems": []}
+    try:
+        dbs = {path.stem: path for path in resolve_logs(data_root, split=None)} if scenes else {}
+    except NuplanFormatError as exc:
+        summary["problems"].append(str(exc))
+        return summary
     for log_name, by_scene in sorted(scenes.items()):
         try:
-            db = resolve_logs(data_root, split=None, log_names=[log_name])[0]
-            sensor_root = sensor_root_for(db, data_root)
+            if log_name not in dbs:
+                raise MissingLogError(Path(data_root), f"no DB for log {log_name}")
+            sensor_root = sensor_root_for(dbs[log_name], data_root)
             prefix = os.path.relpath(sensor_root, data_root).replace(os.sep, "/")
-            with NuplanLog(db, sensor_root) as log:
+            with NuplanLog(dbs[log_name], sensor_root) as log:
                 for scene_token, frames in sorted(by_scene.items()):
                     rows = frame_sensor_rows(log, sorted(frames, key=lambda f: f[1]), scene_token,
                                              "" if prefix == "." else prefix)

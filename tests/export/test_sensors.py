@@ -62,3 +62,14 @@ def test_a_log_that_cannot_be_found_is_named_and_nothing_is_written(synthetic_ro
     summary = add_sensors(str(tmp_path / "ds"), synthetic_root)
     assert summary["scenes"] == 0 and len(summary["problems"]) == 1 and LOG in summary["problems"][0]
     assert not (tmp_path / "ds" / "sensors").exists()
+
+
+def test_cli_sensors_names_the_missing_log_and_exits_1(synthetic_root, tmp_path):
+    from typer.testing import CliRunner
+
+    from nuplan_occ.cli import app
+
+    write_dataset(tmp_path / "ds", [{"semantics": small_scene(0)}])
+    result = CliRunner().invoke(app, ["sensors", str(tmp_path / "ds"), str(synthetic_root)])
+    assert result.exit_code == 1
+    assert f"log {LOG}: " in result.output and "no DB for log" in result.output
