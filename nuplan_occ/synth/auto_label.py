@@ -28,6 +28,9 @@ from nuplan_occ.synth.world import World
 FRAME_S = 0.05
 FALSE_POSITIVE_SIZE = (4.6, 1.9, 1.6)
 """[length, width, height] m of a false-positive vehicle box."""
+FLIP_PARKED_REACH_M = 20.0
+"""Flips go to parked vehicles that come this near the ego first (farther ones are mostly hidden by their
+neighbours), then to the nearest vehicles."""
 _FAILURE_FIELDS = ("box_velocity_sigma", "yaw_flip_tracks", "gap_tracks", "id_switch_tracks", "false_positive_boxes",
                    "undersized_tracks", "oversized_tracks", "duplicate_tracks")
 
@@ -174,7 +177,8 @@ def apply_label_failures(world: World, boxed: list[Agent], tracks: list[TrackRec
         _scale_track(log, k, options.oversized_scale)
         hit.oversized.append(tracks[k].token)
     run = max(1, int(round(options.yaw_flip_run_s / FRAME_S)))
-    for k in log.pick(options.yaw_flip_tracks, log.kind("vehicle", moving=False), log.kind("vehicle")):
+    parked_near = log.kind("vehicle", moving=False) & (log.dist.min(axis=1) <= FLIP_PARKED_REACH_M)
+    for k in log.pick(options.yaw_flip_tracks, parked_near, log.kind("vehicle")):
         boxed_frames = np.flatnonzero(log.present[k])
         chosen = boxed_frames[_flip_frames(len(boxed_frames), options.yaw_flip_share, run, rng)]
         for f in chosen:

@@ -40,7 +40,7 @@ class SynthOptions:
     box_velocity_sigma: float = 0.0
     """Noise (m/s, per axis in x and y) on the logged box velocities, which nuPlan's auto-labeller estimates."""
     yaw_flip_tracks: int = 0
-    """Vehicle tracks (parked ones nearest the ego's route first) whose box is turned by 180 deg in
+    """Vehicle tracks (parked ones within 20 m of the ego first, then the nearest) whose box is turned by 180 deg in
     yaw_flip_share of their frames, in runs of yaw_flip_run_s."""
     yaw_flip_share: float = 0.25
     yaw_flip_run_s: float = 0.5
