@@ -21,7 +21,9 @@ with strict=True.
 format "occ3d": `<dest>/gts/<scene>/<token>/labels.npz` (np.savez_compressed), <scene> = `scene-<scene_token>`
   (unique across logs, unlike nuPlan's scene names, which restart in every log; `unknown_scene` when unknown),
   and `<dest>/occ_infos.pkl` = {"infos": [frame_info + occ_path], "metadata": {"version"}}; occ_path is
-  `gts/<scene>/<token>`, relative to dest, the folder the loaders join "labels.npz" to. The npz holds
+  `gts/<scene>/<token>`, relative to dest, the folder the loaders join "labels.npz" to; scene_name is <scene>
+  too (code that groups frames by it must not merge scenes of different logs), nuplan_scene_name the log's.
+  The npz holds
     semantics    uint8 [X, Y, Z], Occ3D-nuScenes id layout (classes 0-16, free = 17), remapped by OCC3D_REMAP;
     mask_lidar   uint8 0/1, when the frame has the member (omitted otherwise, never invented);
     mask_camera  uint8 0/1, likewise.
@@ -328,8 +330,10 @@ def export_dataset(root: str, dest: str | Path, format: str, *, strict: bool = F
                     skipped.append(_skipped(ds, i, "semantics", exc))
                     continue
                 frames.append(entry)
-                info = frame_info(data, scene_names[i], sensors, placement.frame)
-                infos.append(info | {"occ_path": occ_path})
+                info = frame_info(data, scene_names[i], sensors, placement.frame) | {"occ_path": occ_path}
+                if format == "occ3d":  # the gts folder: unique, where nuPlan's scene names repeat across logs
+                    info |= {"scene_name": scene_folder(data["scene_token"]), "nuplan_scene_name": scene_names[i]}
+                infos.append(info)
                 no_cameras += len(info.get("cams", {})) < len(sensors["cameras"]) if sensors else 1
                 for m in MASK_MEMBERS:
                     without[m] += m not in data

@@ -135,7 +135,8 @@ def test_occ3d_layout(built, exports):
         assert len(records) == len(ds)
         for r in records:
             # loaders join "labels.npz" to occ_path; the folder is gts/<scene>/<token>
-            assert r["occ_path"] == f"gts/scene-{r['scene_token']}/{r['token']}"
+            assert r["occ_path"] == f"gts/scene-{r['scene_token']}/{r['token']}" == f"gts/{r['scene_name']}/{r['token']}"
+            assert r["nuplan_scene_name"].startswith("scene-")
             with np.load(os.path.join(dest, r["occ_path"], "labels.npz")) as npz:
                 assert sorted(npz.files) == ["mask_camera", "mask_lidar", "semantics"]
                 for key in npz.files:
