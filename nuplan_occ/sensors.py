@@ -101,15 +101,18 @@ def add_sensors(root: str, data_root: str | Path, logs: Sequence[str] | None = N
     left out."""
     from nuplan_occ.dataset import open_dataset
 
+    summary = {"scenes": 0, "frames": 0, "rows": 0, "without_image": 0, "problems": []}
+    if logs is not None and not logs:
+        return summary
+    wanted = None if logs is None else set(logs)
     ds = open_dataset(root)
     table = ds.columns(["log", "scene_token", "token", "timestamp_us"]).to_pylist()
     scenes: dict[str, dict[str, list[tuple[str, int]]]] = {}
     for row in table:
         if (row["log"] is not None and row["scene_token"] is not None and row["timestamp_us"] is not None
-                and (logs is None or row["log"] in logs)):
+                and (wanted is None or row["log"] in wanted)):
             scenes.setdefault(row["log"], {}).setdefault(row["scene_token"], []).append(
                 (row["token"], int(row["timestamp_us"])))
-    summary = {"scenes": 0, "frames": 0, "rows": 0, "without_image": 0, "problems": []}
     try:
         dbs = {path.stem: path for path in resolve_logs(data_root, split=None)} if scenes else {}
     except NuplanFormatError as exc:

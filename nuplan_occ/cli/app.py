@@ -69,6 +69,8 @@ def build(
                             shard_index=shard_index, keep_work=keep_work, on_plan=progress.on_plan,
                             on_event=progress.on_event)
     console.print(summary_table(summary))
+    for problem in summary.sensor_problems:
+        console.print(f"no sensor metadata: {problem}", highlight=False, soft_wrap=True)
     if summary.frames_built == 0 or (strict and summary.frames_failed):
         raise typer.Exit(code=1)
 

@@ -25,6 +25,7 @@ from nuplan_occ.pipeline.executors import execute
 from nuplan_occ.pipeline.params import check_params
 from nuplan_occ.pipeline.runner import SceneResult
 from nuplan_occ.pipeline.scene import SceneTask, log_id_of
+from nuplan_occ.sensors import add_sensors
 
 
 @dataclass
@@ -41,6 +42,8 @@ class BuildSummary:
     bytes_total: int = 0
     wall_seconds: float = 0.0
     peak_rss_mb: float = 0.0
+    sensor_problems: list[str] = field(default_factory=list)
+    """One line per built log whose sensor metadata could not be written (nuplan_occ.sensors.add_sensors)."""
 
     @property
     def bytes_per_frame(self) -> float:
@@ -66,6 +69,7 @@ class BuildSummary:
             "scenes_failed": self.scenes_failed, "scenes_fully_cached": self.scenes_fully_cached,
             "stage_seconds": dict(self.stage_seconds), "bytes_per_frame": self.bytes_per_frame,
             "wall_seconds": self.wall_seconds, "peak_rss_mb_per_worker": self.peak_rss_mb,
+            "sensor_problems": list(self.sensor_problems),
         }
 
 
@@ -134,5 +138,7 @@ def run_build(data_root: Path, out: str, params: dict[str, Any], *, pipeline: li
     for result in execute(tasks, pipeline, executor, workers, ray_address, on_event or (lambda event: None)):
         summary.add(result)
         build_log.scene(by_scene[(result.log_name, result.scene_name)].scene_token, result)
+    # per-scene sensor sidecars of the logs built (cameras, images, LiDAR-to-ego; storage.sensors)
+    summary.sensor_problems = add_sensors(out, data_root, logs=sorted({t.log_name for t in tasks}))["problems"]
     summary.wall_seconds = time.perf_counter() - started
     return summary

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import duckdb
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from PIL import Image
 
@@ -30,22 +31,26 @@ BLOBS = Path("nuplan-v1.1") / "sensor_blobs"
 
 @pytest.fixture(scope="module")
 def built(synthetic_root, tmp_path_factory):
-    """(data root, build without sensors, the same build with sensors added, add_sensors' summary)."""
+    """(data root, the build as a dataset built before sensors (its sensors/ removed), the build (sensors
+    written by it), the old one with sensors added by add_sensors, add_sensors' summary)."""
     from nuplan_occ.pipeline.build import run_build
     from nuplan_occ.stages import PIPELINE
     from pipeline_helpers import build_params
 
     base = tmp_path_factory.mktemp("consumers")
-    old = base / "old"
-    run_build(synthetic_root, str(old), build_params(), pipeline=PIPELINE)
     new = base / "new"
-    shutil.copytree(old, new)
-    return synthetic_root, str(old), str(new), add_sensors(str(new), synthetic_root)
+    assert run_build(synthetic_root, str(new), build_params(), pipeline=PIPELINE).sensor_problems == []
+    old = base / "old"
+    shutil.copytree(new, old, ignore=shutil.ignore_patterns("work"))
+    shutil.rmtree(old / "sensors")
+    added = base / "added"
+    shutil.copytree(old, added)
+    return synthetic_root, str(old), str(new), str(added), add_sensors(str(added), synthetic_root)
 
 
 @pytest.fixture(scope="module")
 def exports(built, tmp_path_factory):
-    _, _, new, _ = built
+    new = built[2]
     base = tmp_path_factory.mktemp("exports")
     return {name: (base / name, export_dataset(new, base / name, fmt, **kw)) for name, fmt, kw in (
         ("uniscene", "uniscene", {}), ("occ3d", "occ3d", {}), ("occ3d_coarse", "occ3d", {"grid": "occ3d"}),
@@ -57,10 +62,14 @@ def _pose(translation, quaternion) -> np.ndarray:
 
 
 def test_sensor_metadata_per_frame(built):
-    data_root, old, new, summary = built
+    data_root, old, new, added, summary = built
     ds = open_dataset(new)
+    assert ds.has_sensors  # written by the build
     assert summary["problems"] == [] and summary["frames"] == len(ds) and summary["without_image"] == 0
     assert summary["rows"] == 8 * len(ds)
+    # added to the older dataset: the same tables the build wrote
+    for path in sorted((Path(new) / "sensors").rglob("*.parquet")):
+        assert pq.read_table(path).equals(pq.read_table(Path(added) / path.relative_to(new)))
     db = next((data_root / "nuplan-v1.1" / "splits" / "mini").glob("*.db"))
     with NuplanLog(db) as log:
         cameras = {c.channel: c for c in log.cameras}
@@ -91,7 +100,7 @@ def test_sensor_metadata_per_frame(built):
 
 
 def test_uniscene_layout(built, exports):
-    data_root, _, new, _ = built
+    data_root, new = built[0], built[2]
     dest, summary = exports["uniscene"]
     ds = open_dataset(new)
     assert summary["frame"] == "lidar" and summary["sensors"] and summary["frames"] == len(ds)
@@ -125,7 +134,7 @@ def test_uniscene_layout(built, exports):
 
 
 def test_occ3d_layout(built, exports):
-    _, _, new, _ = built
+    new = built[2]
     ds = open_dataset(new)
     for name, shape in (("occ3d", (400, 400, 32)), ("occ3d_coarse", (200, 200, 16))):
         dest, summary = exports[name]
@@ -200,7 +209,7 @@ def test_occ3d_export_keeps_ids_invertible(exports):
 def test_torch_dataset_returns_cameras_and_decoded_images(built):
     from nuplan_occ.torch import OccupancyDataset
 
-    data_root, old, new, _ = built
+    data_root, old, new = built[:3]
     clips = OccupancyDataset(new, clip_len=2, data_root=str(data_root))
     item = clips[0]
     ds = open_dataset(new)
