@@ -17,7 +17,8 @@ def cli(*args):
 
 
 def test_uniscene_export_imported_back_equals_the_build(reference_build, synthetic_root, tmp_path):
-    assert cli("export", reference_build, tmp_path / "exp", "--format", "uniscene").exit_code == 0
+    # --frame ego: the build's own frame (uniscene's default is the LiDAR frame, a nearest-voxel resampling)
+    assert cli("export", reference_build, tmp_path / "exp", "--format", "uniscene", "--frame", "ego").exit_code == 0
     result = cli("import-release", tmp_path / "exp", tmp_path / "back", "--labels", "nuplan-occ",
                  "--logs-root", synthetic_root)
     assert result.exit_code == 0, result.output
