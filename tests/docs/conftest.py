@@ -35,7 +35,26 @@ def workspace(readme_root, tmp_path_factory):
     result = run_command(build.text, folder, env)
     assert result.returncode == 0, f"{build.text}\n{result.stderr[-3000:]}"
     write_release_folder(folder / "out", folder / "RELEASE")
+    write_predictions_folder(folder / "out", folder / "preds")
     return folder, env
+
+
+def write_predictions_folder(build: Path, preds: Path) -> None:
+    """`preds/`: a model's predictions as `nuplan-occ eval` reads them, one `<token>.npy` per frame (our ids,
+    our grid): the build's own semantics with every vehicle voxel turned into other, so the scores are not
+    trivially perfect."""
+    import numpy as np
+
+    import nuplan_occ
+    from nuplan_occ.labels import LABELS
+
+    ds = nuplan_occ.open_dataset(str(build))
+    preds.mkdir(parents=True)
+    for i in range(len(ds)):
+        frame = ds.get(i, keys=("semantics",))
+        semantics = frame["semantics"].copy()
+        semantics[semantics == LABELS.id_of("vehicle")] = LABELS.id_of("other")
+        np.save(preds / f"{frame['token']}.npy", semantics)
 
 
 def write_release_folder(build: Path, release: Path) -> None:

@@ -18,6 +18,7 @@ Placeholders, all real paths of the workspace (a temporary folder, the current d
   session fixture (its own case then checks that build);
 - `truth/`: the synthetic data root's exact truth dataset;
 - `RELEASE/`: the shared build's frames written in the released Nuplan-Occ's dense layout;
+- `preds/`: a model's predictions of the shared build's frames, one `<token>.npy` each;
 - any other relative path (frame.png, occ3d/, ckpt/, ...) is written by the command that names it.
 Promises checked besides the exit code: files named by `--screenshot`, `--json`, `--preview` exist and
 are not empty; `--out` and export destinations hold files; a build publishes ok frames.
