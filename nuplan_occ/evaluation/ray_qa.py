@@ -36,10 +36,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from nuplan_occ.dataset import open_dataset
-from nuplan_occ.geometry import invert_transform, transform_points
+from nuplan_occ.geometry import invert_transform
 from nuplan_occ.pipeline.cache import StageCache
 from nuplan_occ.pipeline.scene import SceneData, SceneTask
-from nuplan_occ.rays.consistency import broken_rules, ray_consistency
+from nuplan_occ.rays.consistency import broken_rules, ray_consistency, return_stride
 from nuplan_occ.storage.fsio import arrow_filesystem, atomic_put, resolve
 from nuplan_occ.storage.manifest import to_parquet_bytes
 
@@ -83,12 +83,13 @@ def scoring_sweep(scene: SceneData, position: int) -> int | None:
     return best
 
 
-def sweep_in_frame(scene: SceneData, poses: np.ndarray, frame: int, sweep: int) -> tuple[np.ndarray, np.ndarray]:
-    """(origin (3,), returns (N, 3)) of the sweep at position `sweep` in the ego frame of the sweep at `frame`
-    (poses: (F, 4, 4) T_global_from_ego in scene sweep order; metres)."""
+def sweep_in_frame(scene: SceneData, poses: np.ndarray, frame: int, sweep: int, stride: int = 1
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(origin (3,), returns (N, 3)) of every `stride`-th return of the sweep at position `sweep` in the ego
+    frame of the sweep at `frame` (poses: (F, 4, 4) T_global_from_ego in scene sweep order; metres)."""
     T = invert_transform(poses[frame]) @ poses[sweep]
-    return (transform_points(T, scene.sensor_origin_ego[None])[0],
-            transform_points(T, scene.sweeps[sweep].xyz.astype(np.float64)))
+    xyz = scene.sweeps[sweep].xyz[::stride].astype(np.float64)
+    return T[:3, :3] @ scene.sensor_origin_ego + T[:3, 3], xyz @ T[:3, :3].T + T[:3, 3]
 
 
 POSE_MATCH_M = 1e-6
@@ -176,11 +177,13 @@ def frame_ray_columns(scene: SceneData, position: int, poses: np.ndarray, semant
     other = scoring_sweep(scene, position)
     if other is None:
         return {"qa_ray_problem": f"no loaded sweep within {MAX_SWEEP_DT_S:g} s", "qa_ray_flags": ""}
-    figures = ray_consistency(semantics, *sweep_in_frame(scene, poses, position, other), DEFAULT_GRID, max_rays)
+    n_returns = len(scene.sweeps[other].stored_cloud)
+    stride = return_stride(n_returns, max_rays)  # the returns ray_consistency would consider: moved alone
+    figures = ray_consistency(semantics, *sweep_in_frame(scene, poses, position, other, stride), DEFAULT_GRID)
     columns = {"qa_ray_sweep_token": scene.sweeps[other].token,
                "qa_ray_sweep_dt_s": (scene.sweeps[other].timestamp_us - sweep.timestamp_us) / 1e6,
                "qa_ray_sweep_in_background": None if background is None else other in background,
-               "qa_ray_returns": figures.n_returns, "qa_ray_scored": figures.n_scored,
+               "qa_ray_returns": n_returns, "qa_ray_scored": figures.n_scored,
                **{column: getattr(figures, name) for column, name in FIGURES.items()}, "qa_ray_problem": ""}
     columns["qa_ray_flags"] = ",".join(frame_flags(columns))
     return columns

@@ -22,8 +22,9 @@ Depth error of a return with an H: 0 when H lies at the return, else r - d (m, h
 negative never arises, since a hit past P is within a voxel of V). Returns without H have none.
 
 Scored returns: those inside the grid's box and farther than one voxel from O (a return outside the grid
-cannot be checked against it; a ray too short to cross a voxel says nothing). With max_rays, every k-th
-scored return is used (k the smallest stride leaving at most max_rays), in the order given.
+cannot be checked against it; a ray too short to cross a voxel says nothing). With max_rays, only every k-th
+return given is considered, k = `return_stride` (the smallest stride leaving at most max_rays of them), so a
+caller may stride a sweep before moving it into the grid's frame and get the same figures.
 Rays are straight lines from O: returns of LiDARs mounted elsewhere on the vehicle are treated as if seen
 from the merged origin (as the build's LiDAR mask treats them).
 """
@@ -60,8 +61,8 @@ FLAG_RULES = {
 
 @dataclass(frozen=True)
 class RayConsistency:
-    """One frame's figures: n_returns given, n_scored (inside the grid, farther than a voxel, after
-    max_rays), shares of the scored returns per outcome (agree + early + hole + other = 1; NaN without
+    """One frame's figures: n_returns given, n_scored (of the returns max_rays leaves, those inside the grid
+    and farther than a voxel), shares of the scored returns per outcome (agree + early + hole + other = 1; NaN without
     scored returns), and quantiles of the depth error (m) over the scored returns with a first hit."""
 
     n_returns: int
@@ -77,14 +78,18 @@ class RayConsistency:
         return asdict(self)
 
 
+def return_stride(n_returns: int, max_rays: int | None) -> int:
+    """The stride k leaving at most max_rays of n_returns returns (1 for None or enough)."""
+    return 1 if max_rays is None or n_returns <= max_rays else int(np.ceil(n_returns / max_rays))
+
+
 def _scored(returns: np.ndarray, origin: np.ndarray, grid: GridSpec, max_rays: int | None) -> np.ndarray:
     """Indices of the scored returns (module docstring)."""
-    inside = np.all((returns >= grid.lower) & (returns < grid.upper), axis=1)
-    far = np.linalg.norm(returns - origin, axis=1) > grid.voxel_size
-    index = np.flatnonzero(inside & far)
-    if max_rays is not None and len(index) > max_rays:
-        index = index[::int(np.ceil(len(index) / max_rays))]
-    return index
+    index = np.arange(0, len(returns), return_stride(len(returns), max_rays))
+    points = returns[index]
+    inside = np.all((points >= grid.lower) & (points < grid.upper), axis=1)
+    far = np.einsum("ij,ij->i", points - origin, points - origin) > grid.voxel_size ** 2
+    return index[inside & far]
 
 
 def _voxel_at(starts: np.ndarray, ends: np.ndarray, t: np.ndarray, grid: GridSpec) -> np.ndarray:
@@ -113,7 +118,7 @@ def ray_outcomes(semantics: np.ndarray, origin: np.ndarray, returns: np.ndarray,
     is not scored or its ray meets no occupied voxel) of every return (module docstring).
 
     semantics: uint8 (X, Y, Z) of `grid` (0 = empty); origin (3,) and returns (N, 3): metres, the grid's ego
-    frame; max_rays: score at most this many returns, evenly strided (None: all).
+    frame; max_rays: consider every `return_stride`-th return only (None: all).
     """
     returns = np.asarray(returns, dtype=np.float64).reshape(-1, 3)
     origin = np.asarray(origin, dtype=np.float64).reshape(3)

@@ -5,7 +5,9 @@ earlier frame stage failed, gets a record with status "failed" and the reason.
 
 Inputs: `scene`, `registration`, `outliers_removed` and `aggregate_outliers_removed` (qa_outliers_removed is
 their sum: the sweep's points the outlier test removed, on its own or in the aggregate), `map_status`,
-`map_alignment`, `object_boxes`, `object_points` (for qa_boxes_*, nuplan_occ.voxel.box_labels); prepared once
+`map_alignment`, `object_boxes`, `object_points` (for qa_boxes_*, nuplan_occ.voxel.box_labels),
+`background_positions` (for qa_ray_*: the frame's grid against the sweep between frames,
+nuplan_occ.evaluation.ray_qa.frame_ray_columns, with the refined poses); prepared once
 per scene: `ego_speeds` (F,) m/s; frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`.
 Frame output: `record` (FrameRecord). A row's `ego_to_global` is the refined pose corrected by the scene's
 map alignment: the pose the frame's labels were rasterized with, so the map drawn with it lands where the
@@ -18,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nuplan_occ.evaluation.ray_qa import MAX_RAYS, frame_ray_columns
 from nuplan_occ.pipeline.frame_columns import ego_speeds, frame_columns, point_coverage
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
@@ -30,6 +33,8 @@ from nuplan_occ.voxel.compose import zero_emptied_objects
 class WriteParams:
     members: tuple[str, ...] = param(("semantics", "mask_lidar", "mask_camera", "instance", "flow"),
                                      "the per-frame arrays written into the shard", choices=tuple(MEMBERS))
+    ray_qa_max_rays: int = param(MAX_RAYS, "returns of the sweep between frames scored per frame for the qa_ray_* "
+                                 "columns (nuplan_occ.evaluation.ray_qa; 0: no such columns)", low=0)
 
 
 def prepare(inputs: dict, params: WriteParams) -> dict:
@@ -67,10 +72,13 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
                                      scene.instance_ids, semantics, grids.instance))
     if "mask_lidar" in arrays:
         columns["qa_lidar_observed_fraction"] = np.count_nonzero(arrays["mask_lidar"]) / arrays["mask_lidar"].size
+    if params.ray_qa_max_rays:
+        columns.update(frame_ray_columns(scene, position, registration.poses, semantics,
+                                         set(inputs["background_positions"]), params.ray_qa_max_rays))
     return {"record": record}
 
 
 STAGE = Stage("write", inputs=("scene", "registration", "outliers_removed", "aggregate_outliers_removed", "map_status",
-                               "map_alignment", "object_boxes", "object_points", "grids", "final_semantics", "masks",
-                               "free_cleared"),
+                               "map_alignment", "object_boxes", "object_points", "background_positions", "grids",
+                               "final_semantics", "masks", "free_cleared"),
               outputs=("record",), params_type=WriteParams, run=run, per_frame=True, prepare=prepare, kept=True)

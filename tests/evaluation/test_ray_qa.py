@@ -1,6 +1,7 @@
 """`nuplan-occ qa` on a synthetic build: a row per ok frame from the sweep between frames and the refined poses,
-sidecar files one table keyed by token, reruns reuse them, the build report reads them; a grid with an
-injected slab ends rays early, one with its walls removed has holes; the sweep choice on hand-made sweep lists."""
+sidecar files one table keyed by token, reruns reuse them; the build's own qa_ray_* columns are the same
+figures and the report judges them; a grid with an injected slab ends rays early, one with its walls removed
+has holes; the sweep choice on hand-made sweep lists."""
 
 from types import SimpleNamespace
 
@@ -12,8 +13,8 @@ from typer.testing import CliRunner
 from nuplan_occ.cli.errors import CliApp
 from nuplan_occ.cli.qa import register
 from nuplan_occ.dataset import open_dataset
-from nuplan_occ.evaluation.ray_qa import (QA_FOLDER, matches_manifest, qa_dataset, scene_frames, scene_tasks,
-                                          score_scene, scoring_sweep)
+from nuplan_occ.evaluation.ray_qa import (FIGURES, MAX_RAYS, QA_FOLDER, matches_manifest, qa_dataset, scene_frames,
+                                          scene_tasks, score_scene, scoring_sweep, sidecar_columns)
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import EMPTY, OTHER
 from nuplan_occ.pipeline.build import run_build
@@ -114,19 +115,40 @@ def test_the_sweep_between_frames_nearest_in_time_later_on_a_tie():
     assert scoring_sweep(every, 1) == 2  # every sweep an output: the nearest other one, the later on a tie
 
 
-def test_the_build_report_reads_the_sidecar_figures_and_judges_the_ray_rules(built):
+def test_the_build_writes_the_columns_qa_computes_and_the_report_judges_them(built):
+    """The write stage's qa_ray_* manifest columns equal `nuplan-occ qa`'s figures at the same max_rays (same
+    sweep, same refined poses); the report reads them and flags a frame whose rays end early."""
     from nuplan_occ.report.flags import evaluate_rules
     from nuplan_occ.report.frames import load_frames
 
     data_root, out = built
-    rows = {r["token"]: r for r in qa_dataset(str(out), data_root, PIPELINE, max_rays=5000).rows}
+    rows = {r["token"]: r for r in qa_dataset(str(out), data_root, PIPELINE, max_rays=MAX_RAYS).rows}
+    ds = open_dataset(str(out))
+    manifest = ds.columns(["token", *FIGURES, "qa_ray_sweep_token", "qa_ray_flags"]).to_pylist()
+    assert len(manifest) == len(rows)
+    for frame in manifest:
+        assert frame == {key: rows[frame["token"]][key] for key in frame}
     frames = load_frames(str(out))
-    for k, token in enumerate(frames.columns["token"]):
-        assert frames.columns["qa_ray_agree"][k] == rows[token]["qa_ray_agree"]
     flags = evaluate_rules(frames.columns, frames.ok)
     assert {"rays_early", "rays_holes", "rays_disagree"} <= set(flags.masks)
-    frames.columns["qa_ray_early"][0] = 0.5  # a frame whose rays end early is flagged by that rule alone
-    assert np.flatnonzero(evaluate_rules(frames.columns, frames.ok).masks["rays_early"]).tolist() == [0]
+    early = frames.columns["qa_ray_early"].copy()
+    early[0] = 0.5  # a frame whose rays end early is flagged by that rule alone
+    flags = evaluate_rules({**frames.columns, "qa_ray_early": early}, frames.ok)
+    assert np.flatnonzero(flags.masks["rays_early"]).tolist() == [0]
+
+
+def test_sidecar_columns_join_by_token_and_commit(built):
+    """A build without the manifest columns gets them from the sidecar files; a frame rebuilt since (another
+    commit) or never scored gets NaN."""
+    data_root, out = built
+    rows = qa_dataset(str(out), data_root, PIPELINE, max_rays=5000).rows
+    tokens = np.array([r["token"] for r in rows] + ["unknown"], dtype=object)
+    commits = np.array([r["commit_id"] for r in rows] + ["x"], dtype=object)
+    commits[1] = "a later commit"
+    joined = sidecar_columns(str(out), tokens, commits)
+    expected = np.array([r["qa_ray_agree"] for r in rows] + [np.nan])
+    expected[1] = np.nan
+    np.testing.assert_array_equal(joined["qa_ray_agree"], expected)
 
 
 def test_a_registration_matches_the_manifest_only_up_to_a_rigid_correction_on_the_left():
