@@ -31,6 +31,9 @@ FALSE_POSITIVE_SIZE = (4.6, 1.9, 1.6)
 FLIP_PARKED_REACH_M = 20.0
 """Flips go to parked vehicles that come this near the ego first (farther ones are mostly hidden by their
 neighbours), then to the nearest vehicles."""
+GAP_PAD_FRAMES = 5
+"""A track gap keeps this many boxed frames before and after it where the track's span allows (a gap at a track's
+end is a track that ends early)."""
 _FAILURE_FIELDS = ("box_velocity_sigma", "yaw_flip_tracks", "gap_tracks", "id_switch_tracks", "false_positive_boxes",
                    "undersized_tracks", "oversized_tracks", "duplicate_tracks")
 
@@ -96,12 +99,16 @@ class _Log:
     def kind(self, category: str, moving: bool | None = None) -> np.ndarray:
         return np.array([a.category == category and (moving is None or a.moving == moving) for a in self.boxed], bool)
 
-    def window(self, k: int, seconds: float) -> np.ndarray:
+    def window(self, k: int, seconds: float, pad: int = 0) -> np.ndarray:
         """round(seconds / FRAME_S) consecutive frames (indices) of track k centred as near its closest approach to
-        the ego as its boxed frames allow (fewer, where it is boxed, if its boxed span is shorter)."""
+        the ego as its boxed frames allow, keeping `pad` boxed frames before and after it where the span allows
+        (fewer frames, where it is boxed, if its boxed span is shorter)."""
         n = max(1, int(round(seconds / FRAME_S)))
         boxed = np.flatnonzero(self.present[k])
-        start = int(np.clip(int(np.argmin(self.dist[k])) - n // 2, boxed[0], max(boxed[0], boxed[-1] - n + 1)))
+        first, last = boxed[0] + pad, boxed[-1] - pad - n + 1
+        if last < first:
+            first, last = boxed[0], max(boxed[0], boxed[-1] - n + 1)
+        start = int(np.clip(int(np.argmin(self.dist[k])) - n // 2, first, last))
         frames = np.arange(start, min(start + n, len(self.frames)))
         return frames[self.present[k, frames]]
 
@@ -187,7 +194,7 @@ def apply_label_failures(world: World, boxed: list[Agent], tracks: list[TrackRec
             b.yaws[i] = float(wrap_angle(b.yaws[i] + np.pi))
         hit.flipped[tracks[k].token] = chosen
     for k in log.pick(options.gap_tracks, log.kind("vehicle", moving=True), np.array([a.moving for a in boxed], bool)):
-        gap = log.window(k, options.gap_seconds)
+        gap = log.window(k, options.gap_seconds, pad=GAP_PAD_FRAMES)
         for f in gap:
             b = boxes[frames[f].token]
             keep = np.ones(len(b), dtype=bool)

@@ -19,8 +19,9 @@ from nuplan_occ.io.types import Boxes
 
 @dataclass(frozen=True)
 class TrackRepairParams:
-    """heading_window_s: half window (s) over which a track's boxes vote for its heading (a box turned by more
-    than 90 deg from the vote is turned by 180 deg; 0: off). link_max_gap_s / link_max_distance_m: a track that
+    """heading_window_s: half window (s) over which a moving track's box centres give its heading (a box turned
+    by more than 90 deg from it is turned by 180 deg; a track that does not travel 1 m in the window takes the
+    vote of all its boxes; 0: off). link_max_gap_s / link_max_distance_m: a track that
     starts at most this long after another of its category ended, within this distance of where the other's
     last box and velocity put it, continues it (0: off). fill_max_gap_s: a track's missing sweeps are filled by
     interpolation across gaps up to this long (0: off). duplicate_distance_m: a track whose boxes all lie within
@@ -70,21 +71,22 @@ def _tracks_of(boxes: list[Boxes]) -> dict[str, _Track]:
     return tracks
 
 
-def voted_headings(yaws: np.ndarray, times: np.ndarray, window_s: float) -> np.ndarray:
-    """(n,) each box's yaw turned by 180 deg where it lies more than 90 deg from the heading its track votes for
-    within +-window_s: the axis of the window's yaws (mean of the doubled angles), pointed the way the sum of the
-    window's unit headings points. yaws (n,) rad and times (n,) s (ascending) of one track's boxes."""
+def voted_headings(yaws: np.ndarray, times: np.ndarray, window_s: float, centers: np.ndarray | None = None,
+                   min_travel_m: float = 1.0) -> np.ndarray:
+    """(n,) each box's yaw turned by 180 deg where it lies more than 90 deg from its track's heading there: the
+    direction the box centres travel over +-window_s where they travel at least min_travel_m (centers (n, 3)
+    given), else the vote of all the track's boxes: the axis of their yaws (mean of the doubled angles),
+    pointed the way the sum of their unit headings points. yaws (n,) rad and times (n,) s (ascending) of one
+    track's boxes."""
     yaws, times = np.asarray(yaws, np.float64), np.asarray(times, np.float64)
-    lo = np.searchsorted(times, times - window_s, side="left")
-    hi = np.searchsorted(times, times + window_s, side="right")
-
-    def window_sum(values: np.ndarray) -> np.ndarray:
-        total = np.concatenate([[0.0], np.cumsum(values)])
-        return total[hi] - total[lo]
-
-    axis = 0.5 * np.arctan2(window_sum(np.sin(2 * yaws)), window_sum(np.cos(2 * yaws)))
-    along = window_sum(np.cos(yaws)) * np.cos(axis) + window_sum(np.sin(yaws)) * np.sin(axis)
-    heading = np.where(along >= 0, axis, axis + np.pi)
+    axis = 0.5 * np.arctan2(np.sin(2 * yaws).sum(), np.cos(2 * yaws).sum())
+    heading = np.full(len(yaws), axis if np.cos(yaws - axis).sum() >= 0 else axis + np.pi)
+    if centers is not None and len(yaws):
+        lo = np.searchsorted(times, times - window_s, side="left")
+        hi = np.searchsorted(times, times + window_s, side="right") - 1
+        travel = np.asarray(centers, np.float64)[hi, :2] - np.asarray(centers, np.float64)[lo, :2]
+        moving = np.linalg.norm(travel, axis=1) >= min_travel_m
+        heading = np.where(moving, np.arctan2(travel[:, 1], travel[:, 0]), heading)
     turned = np.cos(yaws - heading) < 0
     return np.where(turned, np.asarray(wrap_angle(yaws + np.pi), np.float64), yaws)
 
@@ -161,7 +163,8 @@ def repair_tracks(boxes: list[Boxes], times: np.ndarray, params: TrackRepairPara
     tracks = _tracks_of(boxes)
     if params.heading_window_s > 0:
         for token, track in tracks.items():
-            voted = voted_headings(np.array(track.yaws), times[track.frames], params.heading_window_s)
+            voted = voted_headings(np.array(track.yaws), times[track.frames], params.heading_window_s,
+                                   np.array(track.centers))
             turned = int(np.count_nonzero(voted != np.array(track.yaws)))
             if turned:
                 track.yaws = list(voted)

@@ -31,11 +31,15 @@ def _of(boxes: list[Boxes], token: str) -> dict[int, tuple]:
             for f, b in enumerate(boxes) if token in b.track_tokens}
 
 
-def test_voted_headings_turn_back_the_flipped_boxes_of_a_turning_track():
-    yaws = np.linspace(0.0, np.pi / 2, 40)  # a quarter turn over 2 s
+def test_voted_headings_follow_the_travel_of_a_turning_track_and_the_vote_of_a_parked_one():
+    yaws = np.linspace(0.0, np.pi / 2, 40)  # a quarter turn over 2 s along a circle of 10 m radius
+    centers = np.column_stack([10 * np.sin(yaws), 10 * (1 - np.cos(yaws)), np.zeros(40)])
     flipped = yaws.copy()
-    flipped[[3, 4, 5, 20, 21, 33]] += np.pi
-    assert np.allclose(np.cos(voted_headings(flipped, TIMES, 0.5) - yaws), 1.0)
+    flipped[[0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 20, 21, 33]] += np.pi  # 13 of 40, the first 10 in a row
+    assert np.allclose(np.cos(voted_headings(flipped, TIMES, 0.5, centers) - yaws), 1.0)
+    parked = np.full(40, 0.3)
+    parked[:15] += np.pi
+    assert np.allclose(voted_headings(parked, TIMES, 0.5, np.zeros((40, 3))), 0.3)
 
 
 def test_flipped_boxes_are_turned_back():
