@@ -8,7 +8,8 @@ A worker keeps its last log open (`nuplan_occ.io.reader.open_log`), so the scene
 A sweep whose PCD is missing, corrupt, empty or outside sensor_blobs, whose pose the log cannot give
 (PoseGapError), or one of whose boxes is bad is kept with its failure reason (one line); the scene goes on
 without it. A scene none of whose output sweeps loaded fails at once, naming the blobs' folder and count.
-A missing or unreadable map is kept as `map_problem` (the build warns once per log; the manifest's
+The stored boxes are repaired track by track (nuplan_occ.tracks.track_repair: headings turned by 180 deg,
+id switches, duplicate tracks, short gaps). A missing or unreadable map is kept as `map_problem` (the build warns once per log; the manifest's
 qa_map_status carries it).
 """
 
@@ -28,7 +29,11 @@ from nuplan_occ.io.types import Boxes, LidarFrame, PointCloud
 from nuplan_occ.pipeline.scene import SceneData, SceneTask, Sweep, output_slots
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.spilled_clouds import SpilledClouds
+from nuplan_occ.pipeline.settings import settings_from
 from nuplan_occ.pipeline.stage import Stage
+from nuplan_occ.tracks.track_repair import TrackRepairParams, repaired_sweeps
+
+REPAIR = TrackRepairParams  # the library's defaults
 
 
 @dataclass(frozen=True)
@@ -39,6 +44,18 @@ class LoadParams:
     context_seconds: float = param(1.0, "sweeps of the same log this long before and after the scene are loaded "
                                    "too and aggregated, never written", unit="s", low=0.0)
     context_stride: int = param(2, "every n-th context sweep is loaded", low=1)
+    heading_window_s: float = param(REPAIR.heading_window_s, "half window over which a track's boxes vote for its "
+                                    "heading; a box more than 90 deg off it is turned by 180 deg (0: off)", unit="s",
+                                    low=0.0)
+    link_max_gap_s: float = param(REPAIR.link_max_gap_s, "a track starting at most this long after another of its "
+                                  "category ended continues it (id switch; 0: off)", unit="s", low=0.0)
+    link_max_distance_m: float = param(REPAIR.link_max_distance_m, "... when it starts within this distance of "
+                                       "where the other's last box and velocity put it", unit="m", low=0.0)
+    fill_max_gap_s: float = param(REPAIR.fill_max_gap_s, "a track's boxes missing for at most this long are "
+                                  "interpolated (0: off)", unit="s", low=0.0)
+    duplicate_distance_m: float = param(REPAIR.duplicate_distance_m, "a track whose boxes all lie this close to a "
+                                        "longer track's of its category (and within half the narrower width) is "
+                                        "dropped (0: off)", unit="m", low=0.0)
 
     def __post_init__(self) -> None:
         if self.rate_hz > self.sweep_rate_hz:
@@ -117,7 +134,7 @@ def run(inputs: dict, params: LoadParams) -> dict:
     boxes = log.scene_boxes(frames)
     store = SpilledClouds(task.work_dir / "load")
     read = [read_sweep(log, frame, boxes, store, slots) for frame in frames]
-    sweeps = [sweep for sweep, _ in read]
+    sweeps, _ = repaired_sweeps([sweep for sweep, _ in read], settings_from(TrackRepairParams, params))
     failure = scene_failure(task, log, frames, sweeps, [error for _, error in read])
     if failure is not None:
         raise failure

@@ -8,7 +8,10 @@ frame. The corrected boxes are then smoothed over time in the global frame (a st
 moving one a local quadratic fit), which also places the boxes of sweeps with too few points for ICP. A small
 static object's box is then moved onto its own points (nuplan_occ.tracks.box_snap): an offset shared by all its
 sweeps (the ego-pose error) is invisible to the ICP. Each sweep's points are then taken again from the whole
-sweep, inside the corrected boxes, so points a misplaced box had cut off come back.
+sweep, inside the corrected boxes, so points a misplaced box had cut off come back. Before all this, a track
+whose boxes hold no point above their floor is dropped (a box on nothing gets no voxels); at the end, the boxes
+of `fit_categories` grow to hold their track's points (an undersized box keeps its whole object;
+nuplan_occ.tracks.track_repair).
 
 Inputs: `scene`, `registration`. Outputs: `object_boxes` (sweep position -> Boxes in that sweep's ego frame,
 corrected), `object_points` (sweep position -> track -> (points (n, 3), sensor origins (n, 3)) in the track's
@@ -23,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.geometry import invert_transform
+from nuplan_occ.labels import BOX_CATEGORIES
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.settings import settings_from
 from nuplan_occ.pipeline.stage import Stage
@@ -30,6 +34,7 @@ from nuplan_occ.tracks.box_snap import BoxSnapParams
 from nuplan_occ.tracks.scene_tracks import (boxes_at_global_poses, boxes_in_ego, points_per_box,
                                             smoothed_global_poses, snapped_static_poses)
 from nuplan_occ.tracks.track_refine import TrackRefineParams, refine_track
+from nuplan_occ.tracks.track_repair import empty_tracks, fitted_boxes, track_heights, track_views, without_tracks
 
 REFINE = TrackRefineParams  # the library's defaults
 SNAP = BoxSnapParams
@@ -57,7 +62,8 @@ class TrackParams:
                                    "track's boxes", unit="s", low=0.0)
     static_speed_mps: float = param(REFINE.static_speed_mps, "a track is static (one pose) when its boxes' median "
                                     "speed is below this and they stay within static_travel_m", unit="m/s", low=0.0)
-    static_travel_m: float = param(REFINE.static_travel_m, "largest travel of a static track's boxes", unit="m",
+    static_travel_m: float = param(REFINE.static_travel_m, "largest travel of a static track's boxes (between the "
+                                   "medians of their first, middle and last thirds)", unit="m",
                                    low=0.0)
     weight_per_point: float = param(REFINE.weight_per_point, "smoothing weight of a corrected box per point (at most "
                                     "400 points; an uncorrected box weighs 1)", low=0.0)
@@ -66,6 +72,14 @@ class TrackParams:
     snap_radius_m: float = param(SNAP.radius_m, "largest such shift (0: no snapping)", unit="m", low=0.0)
     snap_min_height_m: float = param(SNAP.min_height_m, "snapped-to points lie at least this far above the local "
                                      "ground", unit="m", low=0.0)
+    empty_clearance_m: float = param(0.3, "a track's points count as its object's from this high above its boxes' "
+                                     "bottom", unit="m", low=0.0)
+    empty_min_points: int = param(10, "a track with fewer such points over all its sweeps is dropped: a box on "
+                                  "nothing gets no voxels (0: keep every track)", low=0)
+    fit_margin_m: float = param(0.3, "boxes of fit_categories grow, about their centre and by at most this per "
+                                "side, to hold their track's points (0: off)", unit="m", low=0.0)
+    fit_categories: tuple[str, ...] = param(("pedestrian",), "categories whose corrected boxes are grown to their "
+                                            "points", choices=BOX_CATEGORIES)
     snap_keep_ratio: float = param(SNAP.keep_ratio, "a box already holding this share of the best shift's points "
                                    "stays", low=0.0, high=1.0)
 
@@ -78,6 +92,10 @@ def run(inputs: dict, params: TrackParams) -> dict:
     origin = np.asarray(scene.sensor_origin_ego, dtype=np.float64)
     initial = {i: boxes_in_ego(scene, poses, i) for i in ok}
     first_points = {i: points_per_box(scene.sweeps[i].xyz, initial[i], origin) for i in ok}
+    if params.empty_min_points > 0:
+        empty = empty_tracks(track_views(initial, first_points), track_heights(initial), params.empty_clearance_m,
+                             params.empty_min_points)
+        initial = {i: without_tracks(boxes, empty) for i, boxes in initial.items()}
     frames_of: dict[str, list[int]] = {}
     for i in ok:
         for track in initial[i].track_tokens:
@@ -104,6 +122,10 @@ def run(inputs: dict, params: TrackParams) -> dict:
         boxes = initial[i]
         object_boxes[i] = boxes_at_global_poses(boxes, invert_transform(poses[i]),
                                                 [final[track][frames_of[track].index(i)] for track in boxes.track_tokens])
+    if params.fit_margin_m > 0 and params.fit_categories:
+        object_boxes = fitted_boxes(object_boxes, lambda i: scene.sweeps[i].xyz, origin, params.fit_margin_m,
+                                    params.empty_clearance_m, params.fit_categories)
+    for i in ok:
         object_points[i] = points_per_box(scene.sweeps[i].xyz, object_boxes[i], origin)
     track_corrections = {track: corrections[track] for track in frames_of}
     return {"object_boxes": object_boxes, "object_points": object_points, "track_corrections": track_corrections}

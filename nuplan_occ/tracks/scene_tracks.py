@@ -32,6 +32,16 @@ def points_per_box(cloud_ego: np.ndarray, boxes: Boxes, origin_ego: np.ndarray) 
     return {track: (points[track], origins[track]) for track in points}
 
 
+def robust_travel(xy: np.ndarray) -> float:
+    """How far (m) a track's stored box centres (n, 2), in time order, travel: the largest distance between the
+    medians of their first, middle and last thirds (per-box noise, which the largest single displacement
+    would count, averages out)."""
+    if len(xy) < 2:
+        return 0.0
+    thirds = [np.median(part, axis=0) for part in np.array_split(np.asarray(xy, np.float64), min(3, len(xy)))]
+    return float(max(np.linalg.norm(a - b) for a in thirds for b in thirds))
+
+
 def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], track: str, positions: list[int],
                           corrections: np.ndarray, n_points: list[int], params: TrackRefineParams
                           ) -> tuple[np.ndarray, bool]:
@@ -49,7 +59,7 @@ def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], t
         speeds.append(float(np.linalg.norm(boxes.velocities[k][:2])))
         weights.append(1.0 + params.weight_per_point * min(n, 400) if np.any(c != 0) else 1.0)
     stored = np.array(stored)
-    travel = float(np.max(np.linalg.norm(stored[:, :2] - stored[:1, :2], axis=1))) if len(stored) else 0.0
+    travel = robust_travel(stored[:, :2])
     static = float(np.median(speeds)) < params.static_speed_mps and travel < params.static_travel_m
     times = np.array([scene.sweeps[i].timestamp_us for i in positions], dtype=np.float64) / 1e6
     return smooth_track_poses(times, np.array(corrected), np.array(weights), static, params.smooth_window_s), static

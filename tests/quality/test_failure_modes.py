@@ -18,13 +18,12 @@ from nuplan_occ.stages import PIPELINE
 from nuplan_occ.synth.logbuild import build_log, log_start
 from nuplan_occ.synth.presets import get_preset, imperfect_options
 from nuplan_occ.synth.world import build_world
-from nuplan_occ.voxel.voxelize import in_box
+from nuplan_occ.voxel.voxelize import box_voxel_indices, indices_to_grid
 
 pytestmark = pytest.mark.slow
 
-WORLD = MatrixWorld("failure-modes", "small", 3, "test", "realistic")
+WORLD = MatrixWorld("failure-modes", "small", 35, "test", "realistic")
 SECONDS = 2.0
-CENTRES = DEFAULT_GRID.voxel_centers()
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +73,7 @@ def _true_box_mask(log, agent, f: int, truth_frame: dict, margin_m: float) -> np
     T = invert_transform(truth_frame["ego_to_global"])
     c = T[:3, :3] @ (center[0] + world.origin) + T[:3, 3]
     yaw_ego = float(yaw[0]) + np.arctan2(T[1, 0], T[0, 0])
-    return in_box(CENTRES.reshape(-1, 3), c, yaw_ego, agent.size, margin_m).reshape(DEFAULT_GRID.shape)
+    return indices_to_grid(box_voxel_indices(c, yaw_ego, agent.size, DEFAULT_GRID, margin_m))
 
 
 def _object_figures(log, agent, frames) -> tuple[float, float]:
@@ -102,32 +101,72 @@ def test_a_box_with_no_points_gets_no_voxels(log):
         k = box.track_tokens.index(token)
         T = invert_transform(t["ego_to_global"])
         c = T[:3, :3] @ box.centers[k] + T[:3, 3]
-        inside = in_box(CENTRES.reshape(-1, 3), c, float(box.yaws[k]) + np.arctan2(T[1, 0], T[0, 0]), box.sizes[k],
-                        DEFAULT_GRID.voxel_size).reshape(DEFAULT_GRID.shape)
+        inside = indices_to_grid(box_voxel_indices(c, float(box.yaws[k]) + np.arctan2(T[1, 0], T[0, 0]), box.sizes[k],
+                                                   DEFAULT_GRID, DEFAULT_GRID.voxel_size))
         objects = (b["semantics"] >= VEHICLE) & (b["semantics"] <= GENERIC_OBJECT)
         assert not np.any(inside & objects), f"sweep {f}: {np.count_nonzero(inside & objects)} object voxels in an empty box"
         checked += 1
     assert checked
 
 
+def _reference_recall(log) -> float:
+    """Median recall of the log's moving boxed vehicles that no failure hit: what box noise alone leaves."""
+    world, plan = log[0], log[1]
+    failures = plan.label_failures
+    hit = {*failures.flipped, *failures.gaps, *failures.switched, *failures.duplicated, *failures.oversized,
+           *failures.undersized}
+    recalls = []
+    agents = [a for a in world.agents if a.boxed]  # the log's first tracks, in order; later ones are failures'
+    for track, agent in zip(plan.content.tracks, agents):
+        if track.token not in hit and agent.category == "vehicle" and agent.moving:
+            try:
+                recalls.append(_object_figures(log, agent, range(len(plan.content.frames)))[0])
+            except AssertionError:  # not seen
+                continue
+    assert recalls
+    return float(np.median(recalls))
+
+
 def test_a_flipped_box_neither_smears_nor_drops_its_car(log):
     (token, _), = log[1].label_failures.flipped.items()
     recall, precision = _object_figures(log, _agent(log, token), range(len(log[1].content.frames)))
-    assert recall >= 0.7 and precision >= 0.9, (recall, precision)
+    assert recall >= 0.9 * _reference_recall(log) and precision >= 0.95, (recall, precision)
 
 
 def test_a_car_whose_box_is_missing_keeps_its_voxels_without_a_trail(log):
     (token, gap), = log[1].label_failures.gaps.items()
-    recall, precision = _object_figures(log, _agent(log, token), gap)
-    assert recall >= 0.7 and precision >= 0.9, (recall, precision)
-    assert log[4]["trail_voxels"] == 0
+    agent = _agent(log, token)
+    recall, precision = _object_figures(log, agent, gap)
+    boxed_recall, _ = _object_figures(log, agent, sorted(set(range(len(log[1].content.frames))) - set(gap.tolist())))
+    assert recall >= 0.9 * boxed_recall and precision >= 0.95, (recall, boxed_recall, precision)
+    assert _trail(log, agent, gap) == 0
+
+
+def _trail(log, agent, frames) -> int:
+    """Built occupied voxels, empty in the truth, that the agent's TRUE box (its lowest 0.3 m left out) covers at
+    another sweep but not (grown by a voxel) at the frame, summed over the built frames among `frames`."""
+    world, plan = log[0], log[1]
+    times = [(frame.timestamp_us - world.start_us) / 1e6 for frame in plan.content.frames]
+    total = 0
+    for f, t, b in _frames(log, frames):
+        T = invert_transform(t["ego_to_global"])
+        swept = np.zeros(DEFAULT_GRID.shape, dtype=bool)
+        for time in times[::2]:
+            center, yaw, _ = agent.state(np.array([time]))
+            c = T[:3, :3] @ (center[0] + world.origin) + T[:3, 3] + [0.0, 0.0, 0.15]
+            index = box_voxel_indices(c, float(yaw[0]) + np.arctan2(T[1, 0], T[0, 0]), agent.size - [0.0, 0.0, 0.3])
+            swept[tuple(index.T)] = True
+        now = _true_box_mask(log, agent, f, t, DEFAULT_GRID.voxel_size)
+        total += int(np.count_nonzero(swept & ~now & (t["semantics"] == EMPTY) & (b["semantics"] != EMPTY)))
+    return total
 
 
 def test_an_id_switch_and_a_duplicate_track_keep_one_car(log):
     failures = log[1].label_failures
+    reference = _reference_recall(log)
     for token in [*failures.switched, *failures.duplicated]:
         recall, precision = _object_figures(log, _agent(log, token), range(len(log[1].content.frames)))
-        assert recall >= 0.7 and precision >= 0.9, (token, recall, precision)
+        assert recall >= 0.75 * reference and precision >= 0.9, (token, recall, reference, precision)
 
 
 def test_an_undersized_box_keeps_its_whole_pedestrian(log):

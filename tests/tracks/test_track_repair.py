@@ -110,3 +110,14 @@ def test_fitted_sizes_grow_a_small_box_to_its_points_and_leave_a_fitting_one():
     assert np.allclose(grown["small"], [0.6, 0.6, 1.75], atol=0.03)
     capped = fitted_sizes(views, sizes, margin_m=0.05, floor_clearance_m=0.1)
     assert np.allclose(capped["small"], [0.55, 0.55, 1.41])
+
+
+def test_robust_travel_ignores_box_noise_and_sees_a_slow_move():
+    from nuplan_occ.tracks.scene_tracks import robust_travel
+
+    rng = np.random.default_rng(2)
+    parked = rng.normal(0.0, 0.15, (400, 2))  # the realistic profile's centre noise: single boxes stray 0.7 m
+    assert np.max(np.linalg.norm(parked - parked[0], axis=1)) > 0.5 and robust_travel(parked) < 0.1
+    creeping = parked + np.column_stack([np.linspace(0.0, 1.0, 400), np.zeros(400)])
+    assert robust_travel(creeping) > 0.6
+    assert robust_travel(np.zeros((1, 2))) == 0.0
