@@ -36,8 +36,8 @@ from scipy.stats import spearmanr
 
 from nuplan_occ.dataset import open_dataset
 from nuplan_occ.evaluation.grid_metrics import occupancy_metrics
-from nuplan_occ.evaluation.ray_qa import (FIGURES, frame_flags, frame_ray_columns, qa_dataset, scene_frames,
-                                          scene_poses, scene_tasks, score_scene, scoring_sweep)
+from nuplan_occ.evaluation.ray_qa import qa_dataset, scene_frames, scene_poses, scene_tasks, score_scene
+from nuplan_occ.rays.frame_qa import FIGURES, frame_flags, frame_ray_columns, scoring_sweep
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import EMPTY, OTHER, VEHICLE
 from nuplan_occ.rays.consistency import FLAG_RULES, GROUND_IDS

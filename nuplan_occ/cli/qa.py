@@ -22,7 +22,8 @@ def _median(rows: list[dict], column: str) -> float:
 
 def qa_tables(result) -> list[Table]:
     """Summary (medians of the figures, sources, flags by rule) and the flagged scenes of a `QaResult`."""
-    from nuplan_occ.evaluation.ray_qa import FIGURES, SCENE_RULE_SHARE
+    from nuplan_occ.evaluation.ray_qa import SCENE_RULE_SHARE
+    from nuplan_occ.rays.frame_qa import FIGURES
     from nuplan_occ.rays.consistency import FLAG_RULES
 
     rows = result.rows

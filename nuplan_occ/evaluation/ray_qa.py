@@ -1,19 +1,17 @@
 """`nuplan-occ qa`: ray consistency (`nuplan_occ.rays.consistency`) of every ok frame of a built dataset,
 scored against a LiDAR sweep of its log, written beside the dataset without touching what is published.
 
-Which sweep: for each output frame, the loaded sweep of its scene nearest in time that is not an output
-frame (the 20 Hz sweeps between 10 Hz frames; ties go to the later one); in a build whose output rate is
-the sweep rate, the nearest other loaded sweep. Sweeps more than MAX_SWEEP_DT_S away are not used. Each row
-says which sweep it used and whether that sweep's points went into the background the grid was built from
-(`qa_ray_sweep_in_background`: the filter stage takes the background from every output sweep and every
+Which sweep: the one the build's write stage scores each frame against (`nuplan_occ.rays.frame_qa`: the sweep
+between output frames nearest in time), so the figures are the build's own qa_ray_* columns recomputed. Each
+row says which sweep it used and whether that sweep's points went into the background the grid was built
+from (`qa_ray_sweep_in_background`: the filter stage takes the background from every output sweep and every
 n-th sweep in phase with them, so with the defaults the sweeps between frames of a scene of at least 40
 sweeps are held out of the background; their object points are aggregated all the same).
 
 Poses: the build's refined poses (its `register` stage's cache entry, kept by the default work policy) when the
 work folder still holds an entry whose poses are the build's (checked against the manifest's poses, so a code
 edit or a moved data root since the build does not lose them), else the log's poses (`qa_ray_poses`: refined |
-logged). The sweep's returns and the merged LiDAR origin are moved into the frame's ego frame by
-T_frame_from_sweep = inv(pose_frame) @ pose_sweep.
+logged).
 
 Output: one Parquet file per scene, OUT/qa/ray_consistency/<log>/<scene>.parquet, written whole (atomic), a row
 per ok frame keyed by `token` (with log, scene_name, scene_token, frame_index and the manifest row's
@@ -36,26 +34,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from nuplan_occ.dataset import open_dataset
-from nuplan_occ.geometry import invert_transform
 from nuplan_occ.pipeline.cache import StageCache
 from nuplan_occ.pipeline.scene import SceneData, SceneTask
-from nuplan_occ.rays.consistency import broken_rules, ray_consistency, return_stride
+from nuplan_occ.rays.frame_qa import FIGURES, MAX_RAYS, frame_flags, frame_ray_columns
 from nuplan_occ.storage.fsio import arrow_filesystem, atomic_put, resolve
 from nuplan_occ.storage.manifest import to_parquet_bytes
 
 QA_FOLDER = "qa/ray_consistency"
 """Where the sidecar files go, under the dataset root."""
-
-MAX_SWEEP_DT_S = 0.2
-"""A frame is scored against a sweep at most this far from it in time (s)."""
-
-MAX_RAYS = 20000
-"""Returns scored per frame by default (evenly strided; `rays.consistency`)."""
-
-FIGURES = {"qa_ray_agree": "agree", "qa_ray_early": "early", "qa_ray_hole": "hole", "qa_ray_other": "other",
-           "qa_ray_depth_error_p90_m": "depth_error_p90_m", "qa_ray_depth_error_p99_m": "depth_error_p99_m"}
-"""The figure columns and the `RayConsistency` field each holds."""
-
 
 SCENE_RULE_SHARE = 0.2
 """A scene is flagged when more than this share of its scored frames is flagged."""
@@ -68,28 +54,6 @@ SCHEMA = pa.schema([
     ("qa_ray_flags", pa.string()), ("qa_ray_problem", pa.string()),
 ])
 """Columns of a sidecar file."""
-
-
-def scoring_sweep(scene: SceneData, position: int) -> int | None:
-    """Position of the loaded sweep the output frame at `position` is scored against (module docstring), or
-    None when no loaded sweep lies within MAX_SWEEP_DT_S."""
-    between = [i for i, s in enumerate(scene.sweeps) if s.has_cloud and not s.is_output]
-    candidates = between or [i for i, s in enumerate(scene.sweeps) if s.has_cloud and i != position]
-    t = scene.sweeps[position].timestamp_us
-    best = min(candidates, key=lambda i: (abs(scene.sweeps[i].timestamp_us - t), -scene.sweeps[i].timestamp_us),
-               default=None)
-    if best is None or abs(scene.sweeps[best].timestamp_us - t) > MAX_SWEEP_DT_S * 1e6:
-        return None
-    return best
-
-
-def sweep_in_frame(scene: SceneData, poses: np.ndarray, frame: int, sweep: int, stride: int = 1
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(origin (3,), returns (N, 3)) of every `stride`-th return of the sweep at position `sweep` in the ego
-    frame of the sweep at `frame` (poses: (F, 4, 4) T_global_from_ego in scene sweep order; metres)."""
-    T = invert_transform(poses[frame]) @ poses[sweep]
-    xyz = scene.sweeps[sweep].xyz[::stride].astype(np.float64)
-    return T[:3, :3] @ scene.sensor_origin_ego + T[:3, 3], xyz @ T[:3, :3].T + T[:3, 3]
 
 
 POSE_MATCH_M = 1e-6
@@ -145,11 +109,6 @@ def background_sweeps(task: SceneTask, pipeline: list, scene: SceneData) -> set[
     return set(scene.background_positions(params.sweep_stride, params.stride_min_sweeps))
 
 
-def frame_flags(row: dict) -> list[str]:
-    """Names of the flag rules (`rays.consistency.FLAG_RULES`) a sidecar row's figures break."""
-    return broken_rules({name: row.get(column) for column, name in FIGURES.items()})
-
-
 IDENTITY = ("log", "scene_name", "scene_token", "frame_index", "commit_id")
 """Manifest columns copied into each sidecar row (with `token`)."""
 
@@ -163,30 +122,6 @@ def scene_frames(ds) -> dict[tuple[str, str], dict[str, dict]]:
         pose = np.asarray(row.pop("ego_to_global"), dtype=np.float64).reshape(4, 4)
         out.setdefault((row["log"], row["scene_token"]), {})[row.pop("token")] = {**row, "ego_to_global": pose}
     return out
-
-
-def frame_ray_columns(scene: SceneData, position: int, poses: np.ndarray, semantics: np.ndarray,
-                      background: set[int] | None, max_rays: int | None = MAX_RAYS) -> dict:
-    """The qa_ray_* columns of the output frame at `position` (its grid `semantics`, uint8 [x, y, z] of the
-    default grid): the scored sweep, its time offset (s) and background membership (`background`: positions
-    whose background the grids hold, None when unknown), the counts and figures (FIGURES) and the flags;
-    qa_ray_problem says why a frame has no figures. poses: (F, 4, 4) T_global_from_ego in scene sweep order."""
-    from nuplan_occ.grid import DEFAULT_GRID
-
-    sweep = scene.sweeps[position]
-    other = scoring_sweep(scene, position)
-    if other is None:
-        return {"qa_ray_problem": f"no loaded sweep within {MAX_SWEEP_DT_S:g} s", "qa_ray_flags": ""}
-    n_returns = len(scene.sweeps[other].stored_cloud)
-    stride = return_stride(n_returns, max_rays)  # the returns ray_consistency would consider: moved alone
-    figures = ray_consistency(semantics, *sweep_in_frame(scene, poses, position, other, stride), DEFAULT_GRID)
-    columns = {"qa_ray_sweep_token": scene.sweeps[other].token,
-               "qa_ray_sweep_dt_s": (scene.sweeps[other].timestamp_us - sweep.timestamp_us) / 1e6,
-               "qa_ray_sweep_in_background": None if background is None else other in background,
-               "qa_ray_returns": n_returns, "qa_ray_scored": figures.n_scored,
-               **{column: getattr(figures, name) for column, name in FIGURES.items()}, "qa_ray_problem": ""}
-    columns["qa_ray_flags"] = ",".join(frame_flags(columns))
-    return columns
 
 
 def score_scene(task: SceneTask, pipeline: list, frames: dict[str, dict], semantics: Callable[[str], np.ndarray],

@@ -7,7 +7,7 @@ Inputs: `scene`, `registration`, `outliers_removed` and `aggregate_outliers_remo
 their sum: the sweep's points the outlier test removed, on its own or in the aggregate), `map_status`,
 `map_alignment`, `object_boxes`, `object_points` (for qa_boxes_*, nuplan_occ.voxel.box_labels),
 `background_positions` (for qa_ray_*: the frame's grid against the sweep between frames,
-nuplan_occ.evaluation.ray_qa.frame_ray_columns, with the refined poses); prepared once
+nuplan_occ.rays.frame_qa.frame_ray_columns, with the refined poses); prepared once
 per scene: `ego_speeds` (F,) m/s; frame inputs `grids`, `final_semantics`, `masks`, `free_cleared`.
 Frame output: `record` (FrameRecord). A row's `ego_to_global` is the refined pose corrected by the scene's
 map alignment: the pose the frame's labels were rasterized with, so the map drawn with it lands where the
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nuplan_occ.evaluation.ray_qa import MAX_RAYS, frame_ray_columns
+from nuplan_occ.rays.frame_qa import MAX_RAYS, frame_ray_columns
 from nuplan_occ.pipeline.frame_columns import ego_speeds, frame_columns, point_coverage
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
@@ -34,7 +34,7 @@ class WriteParams:
     members: tuple[str, ...] = param(("semantics", "mask_lidar", "mask_camera", "instance", "flow"),
                                      "the per-frame arrays written into the shard", choices=tuple(MEMBERS))
     ray_qa_max_rays: int = param(MAX_RAYS, "returns of the sweep between frames scored per frame for the qa_ray_* "
-                                 "columns (nuplan_occ.evaluation.ray_qa; 0: no such columns)", low=0)
+                                 "columns (nuplan_occ.rays.frame_qa; 0: no such columns)", low=0)
 
 
 def prepare(inputs: dict, params: WriteParams) -> dict:

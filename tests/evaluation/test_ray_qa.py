@@ -13,8 +13,9 @@ from typer.testing import CliRunner
 from nuplan_occ.cli.errors import CliApp
 from nuplan_occ.cli.qa import register
 from nuplan_occ.dataset import open_dataset
-from nuplan_occ.evaluation.ray_qa import (FIGURES, MAX_RAYS, QA_FOLDER, matches_manifest, qa_dataset, scene_frames,
-                                          scene_tasks, score_scene, scoring_sweep, sidecar_columns)
+from nuplan_occ.evaluation.ray_qa import (QA_FOLDER, matches_manifest, qa_dataset, scene_frames, scene_tasks,
+                                          score_scene, sidecar_columns)
+from nuplan_occ.rays.frame_qa import FIGURES, MAX_RAYS, scoring_sweep
 from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import EMPTY, OTHER
 from nuplan_occ.pipeline.build import run_build
