@@ -34,6 +34,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from nuplan_occ.dataset import open_dataset
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.pipeline.cache import StageCache
 from nuplan_occ.pipeline.scene import SceneData, SceneTask
 from nuplan_occ.rays.frame_qa import FIGURES, MAX_RAYS, frame_flags, frame_ray_columns
@@ -125,17 +126,18 @@ def scene_frames(ds) -> dict[tuple[str, str], dict[str, dict]]:
 
 
 def score_scene(task: SceneTask, pipeline: list, frames: dict[str, dict], semantics: Callable[[str], np.ndarray],
-                max_rays: int | None = MAX_RAYS) -> list[dict]:
-    """Sidecar rows of one scene: frames is the scene's entry of `scene_frames`; semantics(token) reads a grid.
-    Loads the scene through the pipeline (`run_stages`; its first stage reads the scene's sweeps)."""
+                max_rays: int | None = MAX_RAYS, grid: GridSpec = DEFAULT_GRID, built: bool = True) -> list[dict]:
+    """Sidecar rows of one scene: frames is the scene's entry of `scene_frames`; semantics(token) reads a grid of
+    `grid`; built: the dataset is a build of this pipeline (else, e.g. an imported release, which sweeps went into
+    its grids is unknown). Loads the scene through the pipeline (`run_stages`; its first stage reads the sweeps)."""
     from nuplan_occ.pipeline.runner import run_stages
 
     scene = run_stages(task, pipeline, ("scene",))["scene"]
     poses, pose_source = scene_poses(task, pipeline, scene, {t: f["ego_to_global"] for t, f in frames.items()})
-    background = background_sweeps(task, pipeline, scene)
+    background = background_sweeps(task, pipeline, scene) if built else None
     return [{**dict.fromkeys(SCHEMA.names), "token": sweep.token,
              **{key: frames[sweep.token][key] for key in IDENTITY}, "qa_ray_poses": pose_source,
-             **frame_ray_columns(scene, position, poses, semantics(sweep.token), background, max_rays)}
+             **frame_ray_columns(scene, position, poses, semantics(sweep.token), background, max_rays, grid)}
             for position, sweep in enumerate(scene.sweeps) if sweep.token in frames]
 
 
@@ -188,14 +190,17 @@ def sidecar_columns(root: str, tokens: np.ndarray, commit_ids: np.ndarray) -> di
 
 
 def scene_tasks(root: str, pipeline: list, data_root: Path, maps_root: str | None, work_root: Path | None) -> list:
-    """The build's scene tasks of the dataset at `root`: its params (dataset.json) over the pipeline's
-    defaults, the logs it holds, found under data_root; work_root: the build's work folder (default OUT/work)."""
+    """The build's scene tasks of the dataset at `root`: its params (dataset.json; an imported release: none)
+    over the pipeline's defaults, the logs it holds, found under data_root; work_root: the build's work folder
+    (default OUT/work)."""
     from nuplan_occ.io.data_root import maps_root_for, resolve_logs
     from nuplan_occ.pipeline.build import default_work_root, plan_tasks
     from nuplan_occ.pipeline.params import apply_overrides, default_params
     from nuplan_occ.storage.metadata import read_metadata
 
-    params = apply_overrides(default_params(pipeline), read_metadata(root).get("params", {}), f"{root}/dataset.json")
+    metadata = read_metadata(root)
+    built = {} if "release" in metadata else metadata.get("params", {})  # an imported release: the default load
+    params = apply_overrides(default_params(pipeline), built, f"{root}/dataset.json")
     logs = sorted({log for log in open_dataset(root).column("log").to_pylist() if log})
     dbs = resolve_logs(data_root, split=None, log_names=logs)
     return plan_tasks(dbs, Path(data_root), maps_root_for(data_root, maps_root), root,
@@ -225,7 +230,7 @@ def qa_dataset(root: str, data_root: Path, pipeline: list, *, maps_root: str | N
         else:
             rows = score_scene(task, pipeline, frames, lambda token: ds.get(ds.index_of_token(token),
                                                                             keys=("semantics",))["semantics"],
-                               max_rays)
+                               max_rays, ds.grid, "release" not in ds.metadata)
             table = pa.Table.from_pylist(rows, schema=SCHEMA).replace_schema_metadata(
                 {"nuplan_occ_qa": json.dumps({"max_rays": max_rays})})
             fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)

@@ -2,9 +2,10 @@
 against the loaded sweep of its scene nearest in time that is not an output frame (the 20 Hz sweeps between
 10 Hz frames; ties go to the later one; in a build whose output rate is the sweep rate, the nearest other
 loaded sweep; none farther than MAX_SWEEP_DT_S). `scene` arguments are SceneData (nuplan_occ.pipeline.scene:
-sweeps with timestamp_us, is_output, has_cloud, xyz; sensor_origin_ego). The sweep's returns and the merged LiDAR origin are moved
-into the frame's ego frame by T_frame_from_sweep = inv(pose_frame) @ pose_sweep. Used by the build's write
-stage and by `nuplan-occ qa` (nuplan_occ.evaluation.ray_qa), so both give the same figures.
+sweeps with timestamp_us, is_output, has_cloud, xyz; sensor_origin_ego). The sweep's returns and the merged
+LiDAR origin are moved into the frame's ego frame by T_frame_from_sweep = inv(pose_frame) @ pose_sweep. Used
+by the build's write stage and by `nuplan-occ qa` (nuplan_occ.evaluation.ray_qa), so both give the same
+figures.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from nuplan_occ.geometry import invert_transform
-from nuplan_occ.grid import DEFAULT_GRID
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec
 from nuplan_occ.rays.consistency import broken_rules, ray_consistency, return_stride
 
 MAX_SWEEP_DT_S = 0.2
@@ -54,18 +55,19 @@ def frame_flags(row: dict) -> list[str]:
 
 
 def frame_ray_columns(scene, position: int, poses: np.ndarray, semantics: np.ndarray,
-                      background: set[int] | None, max_rays: int | None = MAX_RAYS) -> dict:
-    """The qa_ray_* columns of the output frame at `position` (its grid `semantics`, uint8 [x, y, z] of the
-    default grid): the scored sweep, its time offset (s) and background membership (`background`: positions
-    whose background the grids hold, None when unknown), the counts and figures (FIGURES) and the flags;
-    qa_ray_problem says why a frame has no figures. poses: (F, 4, 4) T_global_from_ego in scene sweep order."""
+                      background: set[int] | None, max_rays: int | None = MAX_RAYS, grid: GridSpec = DEFAULT_GRID
+                      ) -> dict:
+    """The qa_ray_* columns of the output frame at `position` (its grid `semantics`, uint8 [x, y, z] of
+    `grid`, in the frame's ego frame): the scored sweep, its time offset (s) and background membership
+    (`background`: positions whose background the grids hold, None when unknown), the counts and figures
+    (FIGURES) and the flags; qa_ray_problem says why a frame has no figures. poses: (F, 4, 4) T_global_from_ego in scene sweep order."""
     sweep = scene.sweeps[position]
     other = scoring_sweep(scene, position)
     if other is None:
         return {"qa_ray_problem": f"no loaded sweep within {MAX_SWEEP_DT_S:g} s", "qa_ray_flags": ""}
     n_returns = len(scene.sweeps[other].stored_cloud)
     stride = return_stride(n_returns, max_rays)  # the returns ray_consistency would consider: moved alone
-    figures = ray_consistency(semantics, *sweep_in_frame(scene, poses, position, other, stride), DEFAULT_GRID)
+    figures = ray_consistency(semantics, *sweep_in_frame(scene, poses, position, other, stride), grid)
     columns = {"qa_ray_sweep_token": scene.sweeps[other].token,
                "qa_ray_sweep_dt_s": (scene.sweeps[other].timestamp_us - sweep.timestamp_us) / 1e6,
                "qa_ray_sweep_in_background": None if background is None else other in background,
