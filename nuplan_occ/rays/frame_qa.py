@@ -60,7 +60,8 @@ def frame_ray_columns(scene, position: int, poses: np.ndarray, semantics: np.nda
     """The qa_ray_* columns of the output frame at `position` (its grid `semantics`, uint8 [x, y, z] of
     `grid`, in the frame's ego frame): the scored sweep, its time offset (s) and background membership
     (`background`: positions whose background the grids hold, None when unknown), the counts and figures
-    (FIGURES) and the flags; qa_ray_problem says why a frame has no figures. poses: (F, 4, 4) T_global_from_ego in scene sweep order."""
+    (FIGURES) and the flags; qa_ray_problem says why a frame has no figures. poses: (F, 4, 4)
+    T_global_from_ego in scene sweep order."""
     sweep = scene.sweeps[position]
     other = scoring_sweep(scene, position)
     if other is None:
