@@ -164,3 +164,21 @@ def test_a_registration_matches_the_manifest_only_up_to_a_rigid_correction_on_th
     moved = poses.copy()
     moved[2, 0, 3] += 1e-3  # one frame 1 mm elsewhere: another registration
     assert not matches_manifest(moved, [1, 2, 4], published)
+
+
+def test_an_imported_release_is_scored_with_the_logged_poses(built, tmp_path):
+    """The build exported as UniScenev2-style grids and imported as a release (its logs found by token): every
+    frame is scored, with the logged poses, its background membership unknown, and agrees about as well."""
+    from nuplan_occ.export.formats import export_dataset
+    from nuplan_occ.release.importer import ImportOptions, import_release
+
+    data_root, out = built
+    export_dataset(str(out), tmp_path / "release", "uniscene", frame="ego")
+    import_release(tmp_path / "release", str(tmp_path / "rel"),
+                   ImportOptions(layout="dense", labels="nuplan-occ", logs_root=str(data_root)))
+    release = qa_dataset(str(tmp_path / "rel"), data_root, PIPELINE, max_rays=5000).rows
+    own = {r["token"]: r for r in qa_dataset(str(out), data_root, PIPELINE, max_rays=5000).rows}
+    assert sorted(r["token"] for r in release) == sorted(own)
+    for row in release:
+        assert row["qa_ray_poses"] == "logged" and row["qa_ray_sweep_in_background"] is None
+        assert row["qa_ray_agree"] == pytest.approx(own[row["token"]]["qa_ray_agree"], abs=0.03)
