@@ -4,7 +4,7 @@ SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libxrender1 libgomp1
 DEMO_OUT ?= demo_out
 
-.PHONY: setup system-packages demo test bench bench-manifest bench-scale bench-real-size bench-quality clean
+.PHONY: setup system-packages demo test bench bench-manifest bench-scale bench-real-size bench-quality bench-rays clean
 
 setup: .setup.stamp
 
@@ -38,10 +38,15 @@ bench-scale: setup
 bench-real-size: setup
 	nice -n 5 $(PYTHON) -m benchmarks.real_size_log --work bench/real_size --out bench
 
-# Quality matrix (issue #53): 10 synthetic worlds of 20 s (tuning / held-out seeds, imperfect logs, another layout);
+# Quality matrix: 10 synthetic worlds of 20 s (tuning / held-out seeds, imperfect logs, another layout);
 # bench/report-quality.{json,md}. QUALITY_ARGS e.g. --worlds city-s7 --seconds 5.
 bench-quality: setup
 	nice -n 5 $(PYTHON) -m benchmarks.quality_matrix $(QUALITY_ARGS)
+
+# Ray consistency calibrated against truth: the truth-free per-frame scores against true IoU on damaged
+# synthetic worlds; bench/report-ray-consistency.{json,md}.
+bench-rays: setup
+	nice -n 5 $(PYTHON) -m benchmarks.ray_consistency
 
 clean:
 	rm -rf $(DEMO_OUT) bench/work bench/data bench/manifest_work bench/real_size .setup.stamp

@@ -163,3 +163,10 @@ def cleared_background(cloud: np.ndarray, boxes: Boxes | None, max_range_m: floa
     if clearance_m < 0:
         return cloud
     return cloud[outside_boxes(cloud, boxes, clearance_m, ground_keep_m)]
+
+
+def points_per_box(cloud_ego: np.ndarray, boxes: Boxes, origin_ego: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """track -> (points (n, 3), sensor origins (n, 3)) in that track's box frame (m), for the points of cloud_ego
+    (N, 3), ego frame, inside each of `boxes` (ego frame); origin_ego (3,) the sensor in the ego frame."""
+    points, origins = foreground_by_track(cloud_ego, points_in_boxes(cloud_ego, boxes), boxes, origin_ego)
+    return {track: (points[track], origins[track]) for track in points}

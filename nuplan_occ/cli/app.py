@@ -158,12 +158,14 @@ def _demo_report(out: Path) -> None:
 
 
 def _register_dataset_tools() -> None:
-    """view, eval, stats, validate, export, report, import-release."""
+    """view, eval, stats, validate, export, report, sensors, import-release, qa."""
+    from nuplan_occ.cli import qa as cli_qa
     from nuplan_occ.cli import release as cli_release
     from nuplan_occ.cli.dataset import register
 
     register(app)
     cli_release.register(app)
+    cli_qa.register(app)
 
 
 _register_dataset_tools()

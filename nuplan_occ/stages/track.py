@@ -31,7 +31,8 @@ from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.settings import settings_from
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.tracks.box_snap import BoxSnapParams
-from nuplan_occ.tracks.scene_tracks import (boxes_at_global_poses, boxes_in_ego, points_per_box,
+from nuplan_occ.aggregation.split import points_per_box
+from nuplan_occ.tracks.scene_tracks import (boxes_at_global_poses, boxes_in_ego,
                                             smoothed_global_poses, snapped_static_poses)
 from nuplan_occ.tracks.track_refine import TrackRefineParams, refine_track
 from nuplan_occ.tracks.track_repair import empty_tracks, fitted_boxes, track_heights, track_views, without_tracks

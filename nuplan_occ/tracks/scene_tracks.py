@@ -13,7 +13,6 @@ from dataclasses import replace
 
 import numpy as np
 
-from nuplan_occ.aggregation.split import foreground_by_track, points_in_boxes
 from nuplan_occ.geometry import invert_transform, transform_points, wrap_angle, yaw_matrix, yaw_of
 from nuplan_occ.io.types import Boxes
 from nuplan_occ.points.box_kernels import within_square
@@ -24,12 +23,6 @@ from nuplan_occ.tracks.track_refine import TrackRefineParams, corrected_box, smo
 def boxes_in_ego(scene, poses: np.ndarray, position: int) -> Boxes:
     """The sweep's stored boxes moved into its ego frame with the refined pose T_global_from_ego."""
     return scene.sweeps[position].boxes_global.transformed(invert_transform(poses[position]), "ego")
-
-
-def points_per_box(cloud_ego: np.ndarray, boxes: Boxes, origin_ego: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """track -> (points, sensor origins) in that box's frame, for the points (ego frame) inside each box."""
-    points, origins = foreground_by_track(cloud_ego, points_in_boxes(cloud_ego, boxes), boxes, origin_ego)
-    return {track: (points[track], origins[track]) for track in points}
 
 
 def robust_travel(xy: np.ndarray) -> float:

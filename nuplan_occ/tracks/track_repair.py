@@ -269,7 +269,7 @@ def fitted_boxes(boxes: dict[int, Boxes], xyz_of, origin: np.ndarray, margin_m: 
     """sweep -> Boxes (ego frames) with the boxes of `categories` resized by `fitted_sizes` to their tracks'
     points gathered in the boxes grown by margin_m; xyz_of(i): sweep i's points (N, 3), ego frame (read once
     per sweep); origin: the sensor origin (3,), ego frame."""
-    from nuplan_occ.tracks.scene_tracks import points_per_box
+    from nuplan_occ.aggregation.split import points_per_box
 
     views: dict[str, list[np.ndarray]] = {}
     sizes: dict[str, list[np.ndarray]] = {}
