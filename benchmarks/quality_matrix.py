@@ -228,7 +228,8 @@ def run_world(world: MatrixWorld, seconds: float, cache: Path, code: str, source
     result: dict[str, Any] = {"world": asdict(world), "seconds": seconds, "code": code,
                               "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                               "build": {k: build[k] for k in ("ok", "killed", "frames_built", "frames_failed",
-                                                              "cpu_seconds_per_frame", "peak_rss_mb")}}
+                                                              "cpu_seconds_per_frame", "stage_cpu_seconds_per_frame",
+                                                              "peak_rss_mb")}}
     if build["ok"]:
         print(f"bench-quality: {world.name}: evaluating ...", flush=True)
         result["quality"] = evaluate_world(world, seconds, data_root, out)
@@ -257,6 +258,28 @@ def worst_per_class(results: list[dict]) -> list[list[str]]:
     return rows
 
 
+def compared(before: list[dict], after: list[dict], old: str, new: str) -> list[str]:
+    """Markdown lines: the worlds scored by both codes, their headline figures side by side (old -> new)."""
+    by_name = {r["world"]["name"]: r for r in before if "quality" in r}
+    rows = []
+    for r in after:
+        if "quality" not in r or r["world"]["name"] not in by_name:
+            continue
+        a, b = by_name[r["world"]["name"]]["quality"], r["quality"]
+        cpu = (by_name[r["world"]["name"]]["build"]["cpu_seconds_per_frame"], r["build"]["cpu_seconds_per_frame"])
+        worst = min(b["per_class"], key=lambda c: b["per_class"][c]["iou"] if b["per_class"][c]["truth_voxels"] else 9)
+        rows.append([r["world"]["name"], r["world"]["role"]] + [f"{_fmt(a[k])} -> {_fmt(b[k])}" for k in ("iou", "miou")]
+                    + [f"{_fmt(a['per_class'].get('vehicle', {}).get('iou'))} -> {_fmt(b['per_class'].get('vehicle', {}).get('iou'))}",
+                       f"{worst} {_fmt(b['per_class'][worst]['iou'])}"]
+                    + [f"{a[k]} -> {b[k]}" for k in ("trail_voxels", "floater_voxels", "below_ground_voxels", "inside_ego_voxels")]
+                    + [f"{_fmt(cpu[0])} -> {_fmt(cpu[1])}"])
+    if not rows:
+        return []
+    return [f"## Before / after: code {old} -> {new}", "",
+            _table(["world", "role", "IoU", "mIoU", "vehicle IoU", f"worst class ({new})", "trail", "floater", "below ground",
+                    "inside ego", "CPU s/frame"], rows), ""]
+
+
 def render_markdown(report: dict) -> str:
     """The matrix report: worst world per class first (per code, newest first), then per-world tables."""
     lines = ["# Quality matrix (`make bench-quality`, project issue 53)", "",
@@ -269,6 +292,8 @@ def render_markdown(report: dict) -> str:
         lines += [f"## Worst world per class: code {code}", "",
                   _table(["class", "worst world", "IoU", "precision", "recall", "truth voxels", "mean IoU (worlds)"],
                          worst_per_class(results)), ""]
+    if len(codes) > 1:
+        lines += compared(report["runs"][codes[0]], report["runs"][codes[-1]], codes[0], codes[-1])
     for code in reversed(codes):
         results = report["runs"][code]
         lines += [f"## Worlds: code {code}", ""]
