@@ -289,7 +289,8 @@ def render_markdown(report: dict) -> str:
     codes = list(report["runs"])
     for code in reversed(codes):
         results = report["runs"][code]
-        lines += [f"## Worst world per class: code {code}", "",
+        names = ", ".join(r["world"]["name"] for r in results if "quality" in r)
+        lines += [f"## Worst world per class: code {code}", "", f"Over {len(results)} worlds: {names}.", "",
                   _table(["class", "worst world", "IoU", "precision", "recall", "truth voxels", "mean IoU (worlds)"],
                          worst_per_class(results)), ""]
     if len(codes) > 1:
@@ -316,7 +317,9 @@ def render_markdown(report: dict) -> str:
             lines += [f"Per-class {figure} (code {code}):", "", _table(["world"] + names, table), ""]
     lines += ["## Definitions", ""] + [f"- **{k}**: {v}." for k, v in DEFINITIONS.items()]
     lines += ["", "Trail, floater, below-ground and inside-ego counts are summed over the evaluated frames (truth every "
-              f"{20 / TRUTH_RATE_HZ:g}th sweep).", ""]
+              f"{20 / TRUTH_RATE_HZ:g}th sweep). CPU s/frame is the build child's process time; worlds built while other "
+              "jobs share the machine run slower, so compare it only between builds run together (the scale bench "
+              "is the cost yardstick).", ""]
     return "\n".join(lines)
 
 
