@@ -81,7 +81,10 @@ def synth(
     logs: int = typer.Option(1, help="Number of logs."),
     seconds: float = typer.Option(10.0, help="Seconds per log."),
     seed: int = typer.Option(0, help="Random seed (same seed, same bytes)."),
-    preset: str = typer.Option("small", help="small | city | small_objects"),
+    preset: str = typer.Option("small", help="small | city | small_objects | suburb"),
+    imperfections: str = typer.Option("none", help="Imperfection profile: none | realistic (auto-label failures "
+                                      "and sensor artefacts of real logs, each at its documented magnitude)."),
+    location: str = typer.Option("us-nv-las-vegas-strip", help="us-nv-las-vegas-strip | us-pa-pittsburgh-hazelwood"),
     scene_seconds: Optional[float] = typer.Option(None, help="Scene length (default: the preset's, >= 5 scenes "
                                                   "per log); = --seconds makes one scene span the log."),
     truth_rate: float = typer.Option(20.0, help="Truth frames per second (20 / n)."),
@@ -92,11 +95,16 @@ def synth(
 ) -> None:
     """Write synthetic nuPlan logs from procedural worlds, with exact occupancy truth."""
     from nuplan_occ.synth.generate import synthesize
+    from nuplan_occ.synth.presets import IMPERFECTIONS, imperfect_options
     from nuplan_occ.synth.preview import render_preview
+
+    if imperfections not in IMPERFECTIONS:
+        raise typer.BadParameter(f"{imperfections!r} is not one of {', '.join(IMPERFECTIONS)}",
+                                 param_hint="--imperfections")
 
     synthesize(out_root, logs=logs, seconds=seconds, seed=seed, preset=preset, progress=console.log,
                scene_seconds=scene_seconds, truth_rate_hz=truth_rate, camera_rate_hz=camera_rate,
-               camera_mask=camera_mask)
+               camera_mask=camera_mask, options=imperfect_options(imperfections), location=location)
     if preview is not None:
         render_preview(out_root, preview)
         console.print(f"preview written to {preview}")
