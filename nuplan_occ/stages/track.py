@@ -75,8 +75,10 @@ class TrackParams:
                                      "ground", unit="m", low=0.0)
     empty_clearance_m: float = param(0.3, "a track's points count as its object's from this high above its boxes' "
                                      "bottom", unit="m", low=0.0)
-    empty_min_points: int = param(10, "a track with fewer such points over all its sweeps is dropped: a box on "
+    empty_min_points: int = param(1, "a track with fewer such points over all its sweeps is dropped: a box on "
                                   "nothing gets no voxels (0: keep every track)", low=0)
+    empty_min_share: float = param(0.1, "... and so is a track whose such points are fewer than this share of all the "
+                                   "points its boxes hold (a box on the road)", low=0.0, high=1.0)
     fit_margin_m: float = param(0.3, "boxes of fit_categories grow, about their centre and by at most this per "
                                 "side, to hold their track's points (0: off)", unit="m", low=0.0)
     fit_categories: tuple[str, ...] = param(("pedestrian",), "categories whose corrected boxes are grown to their "
@@ -95,7 +97,7 @@ def run(inputs: dict, params: TrackParams) -> dict:
     first_points = {i: points_per_box(scene.sweeps[i].xyz, initial[i], origin) for i in ok}
     if params.empty_min_points > 0:
         empty = empty_tracks(track_views(initial, first_points), track_heights(initial), params.empty_clearance_m,
-                             params.empty_min_points)
+                             params.empty_min_points, params.empty_min_share)
         initial = {i: without_tracks(boxes, empty) for i, boxes in initial.items()}
     frames_of: dict[str, list[int]] = {}
     for i in ok:

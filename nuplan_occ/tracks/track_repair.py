@@ -203,16 +203,19 @@ def repaired_sweeps(sweeps: list, params: TrackRepairParams) -> tuple[list, Repa
 
 
 def empty_tracks(box_frame_points: dict[str, list[np.ndarray]], heights: dict[str, float], clearance_m: float,
-                 min_points: int) -> set[str]:
-    """Tracks whose boxes hold fewer than min_points points higher than clearance_m above their box's bottom,
-    over all their sweeps: boxes on nothing (a false-positive box on the road holds road points only).
+                 min_points: int, min_share: float = 0.0) -> set[str]:
+    """Tracks whose boxes hold fewer than min_points points higher than clearance_m (at most a third of the box's
+    height, so that a low object's own points count) above their box's bottom over all their sweeps, or fewer than
+    min_share of all the points its boxes hold: boxes on nothing (a false-positive box on the road holds road
+    points, and at most a stray return above them), while a far object seen by a handful of returns keeps them.
     box_frame_points: track -> its points (n, 3) per sweep, box frame (z = 0 at the box centre); heights:
     track -> box height (m)."""
     empty = set()
     for track, views in box_frame_points.items():
-        floor = -heights[track] / 2.0 + clearance_m
+        floor = -heights[track] / 2.0 + min(clearance_m, heights[track] / 3.0)
         above = sum(int(np.count_nonzero(p[:, 2] > floor)) for p in views if len(p))
-        if above < min_points:
+        total = sum(len(p) for p in views)
+        if above < min_points or above < min_share * total:
             empty.add(track)
     return empty
 
