@@ -1,4 +1,4 @@
-"""`make bench-quality`: the quality matrix (project issue 53). Synthetic worlds the defaults were not tuned on,
+"""`make bench-quality`: the quality matrix. Synthetic worlds the defaults were not tuned on,
 imperfect logs and another road layout, each built from scratch by one worker and scored against its exact truth.
 
 Worlds (20 s each by default, one scene spanning the log, truth every 10th sweep): `city` at the tuning seeds
@@ -282,7 +282,7 @@ def compared(before: list[dict], after: list[dict], old: str, new: str) -> list[
 
 def render_markdown(report: dict) -> str:
     """The matrix report: worst world per class first (per code, newest first), then per-world tables."""
-    lines = ["# Quality matrix (`make bench-quality`, project issue 53)", "",
+    lines = ["# Quality matrix (`make bench-quality`)", "",
              f"Worlds of {report['seconds']:g} s, one scene each, built from scratch by one worker; scored against the "
              "exact synthetic truth (definitions at the end). Roles: *tuning* worlds may be used to tune defaults, "
              "*held-out* ones never.", ""]

@@ -241,7 +241,7 @@ def _pct(value: float) -> str:
 def render_markdown(report: dict) -> str:
     s = report["summary"]
     lines = [
-        "# Ray consistency against truth (issue 55)",
+        "# Ray consistency against truth",
         "",
         f"`python -m benchmarks.ray_consistency` ({report['seconds']:g} s `{PRESET}` worlds, seeds "
         f"{', '.join(map(str, s['worlds']))}; {s['frames']} frames; at most {report['max_rays']:,} returns scored "

@@ -1,4 +1,4 @@
-"""Procedural synthetic worlds with exact occupancy truth, written as nuPlan logs (project issue 3).
+"""Procedural synthetic worlds with exact occupancy truth, written as nuPlan logs.
 
 Frames used throughout the package:
 - "global": UTM metres of the map's location (EPSG of the location, e.g. 32611 for Las Vegas).

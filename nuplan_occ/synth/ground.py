@@ -2,7 +2,7 @@
 plus the vertical curb faces of the raised walkways (local frame, metres; heights relative to the
 world's ground level).
 
-Labels follow the map (format reference 6.5): paint strips -> road_line (14); walkways and anything
+Labels follow the map's layers: paint strips -> road_line (14); walkways and anything
 outside the drivable area -> other_ground (13) (walkways raised by the curb height); drivable area
 (road segments, intersections incl. crosswalks, driveway, carpark) -> road (12). Curb faces -> other_ground.
 """

@@ -178,7 +178,7 @@ IMPERFECTIONS: dict[str, dict] = {
     },
 }
 """Imperfection profiles: SynthOptions overrides. "realistic": the failure modes of auto-labelled boxes and
-merged real sweeps at the magnitudes of project issue 53 (box centre 0.15 m, yaw 3 deg, size bias 8 %, one
+merged real sweeps at magnitudes seen in real auto-labelled logs (box centre 0.15 m, yaw 3 deg, size bias 8 %, one
 flipped parked car a quarter of the time, a 0.5 s track gap, an id switch, a 0.3 s false-positive vehicle, a
 pedestrian box 25 % small, 0.3 % floaters, 0.2 % multipath ghosts, 200 self-hits per sweep) plus an oversized
 box, a duplicate track and velocity noise."""

@@ -1,4 +1,4 @@
-"""Bad nuPlan input, one fault per test on a copy of the shared synthetic log (issue 54): every case fails only
+"""Bad nuPlan input, one fault per test on a copy of the shared synthetic log: every case fails only
 what it touches, with one line naming the file, or is dropped and counted; nothing goes silently wrong."""
 
 from __future__ import annotations

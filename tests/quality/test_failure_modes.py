@@ -1,4 +1,4 @@
-"""The build survives the failure modes of real logs (project issue 53): one small synthetic log with every
+"""The build survives the failure modes of real logs: one small synthetic log with every
 auto-label failure and sensor artefact of the `realistic` profile (synth.presets.IMPERFECTIONS), built once with
 the default params, each mode checked against the exact truth where it happens."""
 
