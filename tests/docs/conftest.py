@@ -39,38 +39,32 @@ def workspace(readme_root, tmp_path_factory):
     return folder, env
 
 
-def write_predictions_folder(build: Path, preds: Path) -> None:
-    """`preds/`: a model's predictions as `nuplan-occ eval` reads them, one `<token>.npy` per frame (our ids,
-    our grid): the build's own semantics with every vehicle voxel turned into other, so the scores are not
-    trivially perfect."""
+def write_relabeled_frames(build: Path, target: Path, relabel: tuple[str, str]) -> None:
+    """Every frame of the build as `<target>/<lidar_pc token>.npy` (uint8 [400, 400, 32]), with the voxels of
+    class relabel[0] written as relabel[1]."""
     import numpy as np
 
     import nuplan_occ
     from nuplan_occ.labels import LABELS
 
     ds = nuplan_occ.open_dataset(str(build))
-    preds.mkdir(parents=True)
+    target.mkdir(parents=True)
     for i in range(len(ds)):
         frame = ds.get(i, keys=("semantics",))
         semantics = frame["semantics"].copy()
-        semantics[semantics == LABELS.id_of("vehicle")] = LABELS.id_of("other")
-        np.save(preds / f"{frame['token']}.npy", semantics)
+        semantics[semantics == LABELS.id_of(relabel[0])] = LABELS.id_of(relabel[1])
+        np.save(target / f"{frame['token']}.npy", semantics)
+
+
+def write_predictions_folder(build: Path, preds: Path) -> None:
+    """`preds/`: a model's predictions as `nuplan-occ eval` reads them, one `<token>.npy` per frame (our ids,
+    our grid): the build's own semantics with every vehicle voxel turned into other, so the scores are not
+    trivially perfect."""
+    write_relabeled_frames(build, preds, ("vehicle", "other"))
 
 
 def write_release_folder(build: Path, release: Path) -> None:
     """`RELEASE/`: the build's frames in the released Nuplan-Occ's dense layout
     (`nuplan_quantized_400_400_32/<lidar_pc token>.npy`, UniScenev2 ids), as a downloaded release would
     hold them for the same logs; other_ground, which the UniScenev2 palette lacks, is written as other."""
-    import numpy as np
-
-    import nuplan_occ
-    from nuplan_occ.labels import LABELS
-
-    ds = nuplan_occ.open_dataset(str(build))
-    target = release / "nuplan_quantized_400_400_32"
-    target.mkdir(parents=True)
-    for i in range(len(ds)):
-        frame = ds.get(i, keys=("semantics",))
-        semantics = frame["semantics"].copy()
-        semantics[semantics == LABELS.id_of("other_ground")] = LABELS.id_of("other")
-        np.save(target / f"{frame['token']}.npy", semantics)
+    write_relabeled_frames(build, release / "nuplan_quantized_400_400_32", ("other_ground", "other"))
