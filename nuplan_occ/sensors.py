@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.io.data_root import resolve_logs, sensor_root_for
@@ -106,7 +107,10 @@ def add_sensors(root: str, data_root: str | Path, logs: Sequence[str] | None = N
         return summary
     wanted = None if logs is None else set(logs)
     ds = open_dataset(root)
-    table = ds.columns(["log", "scene_token", "token", "timestamp_us"]).to_pylist()
+    columns = ds.columns(["log", "scene_token", "token", "timestamp_us"])
+    if wanted is not None:  # only the named logs' rows become Python objects (a build names its own logs)
+        columns = columns.filter(pc.is_in(columns["log"], value_set=pa.array(sorted(wanted), pa.string())))
+    table = columns.to_pylist()
     scenes: dict[str, dict[str, list[tuple[str, int]]]] = {}
     for row in table:
         if (row["log"] is not None and row["scene_token"] is not None and row["timestamp_us"] is not None
