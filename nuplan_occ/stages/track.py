@@ -10,8 +10,8 @@ static object's box is then moved onto its own points (nuplan_occ.tracks.box_sna
 sweeps (the ego-pose error) is invisible to the ICP. Each sweep's points are then taken again from the whole
 sweep, inside the corrected boxes, so points a misplaced box had cut off come back. Before all this, a track
 whose boxes hold no point above their floor is dropped (a box on nothing gets no voxels); at the end, the boxes
-of `fit_categories` grow to hold their track's points (an undersized box keeps its whole object;
-nuplan_occ.tracks.track_repair).
+of `fit_categories` grow to hold their track's points (an undersized box keeps its whole object) and those of
+`shrink_categories` shrink to them (an oversized box draws no empty volume; nuplan_occ.tracks.box_fit).
 
 Inputs: `scene`, `registration`. Outputs: `object_boxes` (sweep position -> Boxes in that sweep's ego frame,
 corrected), `object_points` (sweep position -> track -> (points (n, 3), sensor origins (n, 3)) in the track's
@@ -35,10 +35,12 @@ from nuplan_occ.aggregation.split import points_per_box
 from nuplan_occ.tracks.scene_tracks import (boxes_at_global_poses, boxes_in_ego,
                                             smoothed_global_poses, snapped_static_poses)
 from nuplan_occ.tracks.track_refine import TrackRefineParams, refine_track
-from nuplan_occ.tracks.track_repair import empty_tracks, fitted_boxes, track_heights, track_views, without_tracks
+from nuplan_occ.tracks.box_fit import BoxFitParams, fitted_boxes, fitted_extents
+from nuplan_occ.tracks.track_repair import empty_tracks, track_heights, track_views, without_tracks
 
 REFINE = TrackRefineParams  # the library's defaults
 SNAP = BoxSnapParams
+FIT = BoxFitParams
 
 
 @dataclass(frozen=True)
@@ -79,10 +81,16 @@ class TrackParams:
                                   "nothing gets no voxels (0: keep every track)", low=0)
     empty_min_share: float = param(0.1, "... and so is a track whose such points are fewer than this share of all the "
                                    "points its boxes hold (a box on the road)", low=0.0, high=1.0)
-    fit_margin_m: float = param(0.3, "boxes of fit_categories grow, about their centre and by at most this per "
-                                "side, to hold their track's points (0: off)", unit="m", low=0.0)
-    fit_categories: tuple[str, ...] = param(("pedestrian",), "categories whose corrected boxes are grown to their "
+    fit_margin_m: float = param(FIT.grow_margin_m, "boxes of fit_categories grow, about their centre and by at most "
+                                "this per side, to hold their track's points (0: off)", unit="m", low=0.0)
+    fit_categories: tuple[str, ...] = param(FIT.grow_categories, "categories whose corrected boxes are grown to their "
                                             "points", choices=BOX_CATEGORIES)
+    shrink_categories: tuple[str, ...] = param(FIT.shrink_categories, "categories whose corrected boxes shrink to "
+                                               "their track's points (an oversized box draws no empty volume)",
+                                               choices=BOX_CATEGORIES)
+    shrink_max: float = param(FIT.max_shrink, "largest share of a box's length, width or height a shrink removes "
+                              "(0: off)", low=0.0, high=1.0)
+    shrink_pad_m: float = param(FIT.pad_m, "a shrunk box reaches this far beyond its points", unit="m", low=0.0)
     snap_keep_ratio: float = param(SNAP.keep_ratio, "a box already holding this share of the best shift's points "
                                    "stays", low=0.0, high=1.0)
 
@@ -125,9 +133,10 @@ def run(inputs: dict, params: TrackParams) -> dict:
         boxes = initial[i]
         object_boxes[i] = boxes_at_global_poses(boxes, invert_transform(poses[i]),
                                                 [final[track][frames_of[track].index(i)] for track in boxes.track_tokens])
-    if params.fit_margin_m > 0 and params.fit_categories:
-        object_boxes = fitted_boxes(object_boxes, lambda i: scene.sweeps[i].xyz, origin, params.fit_margin_m,
-                                    params.empty_clearance_m, params.fit_categories)
+    fit = BoxFitParams(grow_margin_m=params.fit_margin_m, grow_categories=params.fit_categories,
+                       shrink_categories=params.shrink_categories, max_shrink=params.shrink_max,
+                       pad_m=params.shrink_pad_m, floor_clearance_m=params.empty_clearance_m)
+    object_boxes = fitted_boxes(object_boxes, fitted_extents(object_boxes, lambda i: scene.sweeps[i].xyz, origin, fit))
     for i in ok:
         object_points[i] = points_per_box(scene.sweeps[i].xyz, object_boxes[i], origin)
     track_corrections = {track: corrections[track] for track in frames_of}

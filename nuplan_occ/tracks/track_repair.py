@@ -220,28 +220,6 @@ def empty_tracks(box_frame_points: dict[str, list[np.ndarray]], heights: dict[st
     return empty
 
 
-def fitted_sizes(box_frame_points: dict[str, list[np.ndarray]], sizes: dict[str, np.ndarray], margin_m: float,
-                 floor_clearance_m: float = 0.3, quantile: float = 0.99, min_points: int = 20) -> dict[str, np.ndarray]:
-    """track -> its box size (3,) grown, symmetrically about the box centre, to hold its points: the `quantile`
-    of their |x|, |y| and z (points within floor_clearance_m of the box's bottom left out: the ground), each
-    growth at most margin_m per side. box_frame_points: track -> its points per sweep gathered in its box grown
-    by margin_m (box frame, z = 0 at the centre); sizes: track -> [length, width, height] m. Tracks with fewer
-    than min_points such points, or whose points fit, are left out."""
-    grown = {}
-    for track, views in box_frame_points.items():
-        size = np.asarray(sizes[track], np.float64)
-        points = np.vstack([p for p in views if len(p)] or [np.zeros((0, 3))])
-        body = points[points[:, 2] > -size[2] / 2 + floor_clearance_m]
-        if len(body) < min_points:
-            continue
-        reach = np.array([np.quantile(np.abs(body[:, 0]), quantile), np.quantile(np.abs(body[:, 1]), quantile),
-                          np.quantile(body[:, 2], quantile)])
-        new = size + 2.0 * np.clip(reach - size / 2, 0.0, margin_m)
-        if np.any(new > size):
-            grown[track] = new
-    return grown
-
-
 def track_views(boxes: dict[int, Boxes], points: dict[int, dict[str, tuple]]) -> dict[str, list[np.ndarray]]:
     """track -> its box-frame points per sweep, from sweep -> Boxes and sweep -> track -> (points, ...)."""
     views: dict[str, list[np.ndarray]] = {}
@@ -265,36 +243,3 @@ def without_tracks(boxes: Boxes, tracks: set[str]) -> Boxes:
     if not tracks:
         return boxes
     return boxes.subset(np.array([t not in tracks for t in boxes.track_tokens], dtype=bool))
-
-
-def fitted_boxes(boxes: dict[int, Boxes], xyz_of, origin: np.ndarray, margin_m: float, floor_clearance_m: float,
-                 categories: tuple[str, ...]) -> dict[int, Boxes]:
-    """sweep -> Boxes (ego frames) with the boxes of `categories` resized by `fitted_sizes` to their tracks'
-    points gathered in the boxes grown by margin_m; xyz_of(i): sweep i's points (N, 3), ego frame (read once
-    per sweep); origin: the sensor origin (3,), ego frame."""
-    from nuplan_occ.aggregation.split import points_per_box
-
-    views: dict[str, list[np.ndarray]] = {}
-    sizes: dict[str, list[np.ndarray]] = {}
-    for i, b in boxes.items():
-        chosen = np.array([c in categories for c in b.categories], dtype=bool)
-        if not chosen.any():
-            continue
-        grown = b.subset(chosen)
-        for track, size in zip(grown.track_tokens, grown.sizes):
-            sizes.setdefault(track, []).append(size)
-        grown = replace(grown, sizes=grown.sizes + 2.0 * margin_m)
-        for track, (points, _) in points_per_box(xyz_of(i), grown, origin).items():
-            views.setdefault(track, []).append(points)
-    median = {track: np.median(np.stack(s), axis=0) for track, s in sizes.items()}
-    fitted = fitted_sizes(views, median, margin_m, floor_clearance_m)
-    if not fitted:
-        return boxes
-    out = {}
-    for i, b in boxes.items():
-        new = b.sizes.copy()
-        for k, track in enumerate(b.track_tokens):
-            if track in fitted:
-                new[k] = np.maximum(new[k], fitted[track])
-        out[i] = replace(b, sizes=new)
-    return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from nuplan_occ.io.types import Boxes
-from nuplan_occ.tracks.track_repair import TrackRepairParams, empty_tracks, fitted_sizes, repair_tracks, voted_headings
+from nuplan_occ.tracks.track_repair import TrackRepairParams, empty_tracks, repair_tracks, voted_headings
 
 TIMES = np.arange(40) * 0.05
 OFF = TrackRepairParams(heading_window_s=0, link_max_gap_s=0, fill_max_gap_s=0, duplicate_distance_m=0)
@@ -97,19 +97,6 @@ def test_empty_tracks_are_those_holding_only_ground_points():
     views = {"fp": [ground, ground], "car": [ground, body], "cone": [np.array([[0.0, 0.0, 0.3]] * 3)]}
     assert empty_tracks(views, {"fp": 1.6, "car": 1.6, "cone": 0.7}, 0.3, 10) == {"fp", "cone"}
     assert empty_tracks(views, {"fp": 1.6, "car": 1.6, "cone": 0.7}, 0.3, 3) == {"fp"}
-
-
-def test_fitted_sizes_grow_a_small_box_to_its_points_and_leave_a_fitting_one():
-    rng = np.random.default_rng(1)
-    body = rng.uniform([-0.3, -0.3, -0.875], [0.3, 0.3, 0.875], (400, 3))  # a 0.6 x 0.6 x 1.75 m pedestrian
-    ground = np.column_stack([rng.uniform(-0.6, 0.6, (200, 2)), np.full(200, -0.875)])
-    views = {"small": [np.vstack([body, ground])], "fits": [np.vstack([body, ground])]}
-    sizes = {"small": np.array([0.45, 0.45, 1.31]), "fits": np.array([0.62, 0.62, 1.8])}
-    grown = fitted_sizes(views, sizes, margin_m=0.3, floor_clearance_m=0.1)
-    assert set(grown) == {"small"}
-    assert np.allclose(grown["small"], [0.6, 0.6, 1.75], atol=0.03)
-    capped = fitted_sizes(views, sizes, margin_m=0.05, floor_clearance_m=0.1)
-    assert np.allclose(capped["small"], [0.55, 0.55, 1.41])
 
 
 def test_robust_travel_ignores_box_noise_and_sees_a_slow_move():
