@@ -6,6 +6,11 @@ when a ray from a sensor origin to one of the object's points passes through it 
 every other cell stays solid: cells holding a point (the observed surface) and cells no ray reached (the
 unobserved inside). The result is the object's visual hull seen from the aggregated sensor poses, which
 is closed by construction, so a voxelizer fills it solid where the surface itself is open.
+
+The hull keeps every cell no ray reached, and nothing reaches the air above an object where the sky behind it
+gives no return (above a truck's bed, beside its cab). `under_top_envelope` removes those cells: an object is
+taken to have no overhang, so a cell higher than the highest point of the columns around it is air; a column with
+no point of the object's body (only ground returns, or none) is unknown and keeps its cells.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+from scipy import ndimage
 
 from nuplan_occ.points import PointInputError
 from nuplan_occ.aggregation.box_cull import segments_near_box
@@ -185,13 +192,49 @@ def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np
     return held
 
 
+def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float,
+                       reach_m: float, pad_m: float, floor_clearance_m: float) -> np.ndarray:
+    """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size,
+    resolution)`) whose bottom lies at most pad_m above the highest of the object's body points (points_box
+    (N, 3) inside the box and more than floor_clearance_m above its bottom) in the columns within reach_m (x and
+    y) of theirs; cells of columns with no such point within reach are kept (True). Metres."""
+    size = np.asarray(size, np.float64)
+    counts, edge = lattice_shape(size, resolution)
+    points = np.asarray(points_box, np.float64).reshape(-1, 3)
+    points = points[points[:, 2] > -size[2] / 2 + floor_clearance_m]
+    inside, flat = lattice_cells(points, size, edge, counts)
+    top = np.full(int(counts[0] * counts[1]), -np.inf)
+    np.maximum.at(top, flat // counts[2], points[inside, 2])
+    reach = int(np.ceil(reach_m / min(edge[0], edge[1]) - 1e-9))
+    top = ndimage.maximum_filter(top.reshape(counts[0], counts[1]), size=2 * reach + 1, mode="constant", cval=-np.inf)
+    cells = np.asarray(cells_box, np.float64).reshape(-1, 3)
+    column = np.floor((cells[:, :2] + size[:2] / 2) / edge[:2]).astype(np.int64)
+    column = np.clip(column, 0, counts[:2] - 1)
+    column_top = top[column[:, 0], column[:, 1]]
+    return np.isneginf(column_top) | (cells[:, 2] - edge[2] / 2 <= column_top + pad_m)
+
+
+@dataclass(frozen=True)
+class TopEnvelope:
+    """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m."""
+
+    reach_m: float
+    pad_m: float
+    floor_clearance_m: float
+
+
 def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float,
-                         through: tuple[np.ndarray, np.ndarray] | None, corners: bool) -> SolidSamples:
+                         through: tuple[np.ndarray, np.ndarray] | None, corners: bool,
+                         envelope: TopEnvelope | None = None) -> SolidSamples:
     """An object's carved solid (`carve_object_solid` of its points_box (N, 3) seen from origins_box (N, 3), box
-    of `size` (3,), cells of edge <= resolution, more carving rays `through`; all box frame, m) as samples:
-    the solid cells' centres, or with `corners` the 8 points near each cell's corners (`cell_corner_points`,
-    so the voxelizer marks every voxel a cell overlaps); each sample observed when its cell holds a point."""
+    of `size` (3,), cells of edge <= resolution, more carving rays `through`; all box frame, m), with `envelope`
+    only its cells `under_top_envelope`, as samples: the solid cells' centres, or with `corners` the 8 points
+    near each cell's corners (`cell_corner_points`, so the voxelizer marks every voxel a cell overlaps); each
+    sample observed when its cell holds a point."""
     cells = carve_object_solid(points_box, origins_box, size, resolution=resolution, through=through)
+    if envelope is not None:
+        cells = cells[under_top_envelope(cells, points_box, size, resolution, envelope.reach_m, envelope.pad_m,
+                                         envelope.floor_clearance_m)]
     observed = cells_holding_points(cells, points_box, size, resolution)
     if corners:
         return SolidSamples(cell_corner_points(cells, size, resolution), np.repeat(observed, 8))

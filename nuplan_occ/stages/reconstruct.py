@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from nuplan_occ.aggregation.carve import object_solid_samples
+from nuplan_occ.aggregation.carve import TopEnvelope, object_solid_samples
 from nuplan_occ.aggregation.ground_fill import ground_fill_mesh
 from nuplan_occ.labels import BOX_CATEGORIES
 from nuplan_occ.pipeline.params import param
@@ -49,6 +49,14 @@ class ReconstructParams:
     min_carve_points: int = param(1, "objects with fewer points are not carved", low=1)
     corner_categories: tuple[str, ...] = param(("barrier", "generic_object"), "categories whose solids are sampled "
                                                "at every cell's corners instead of its centre", choices=BOX_CATEGORIES)
+    envelope_categories: tuple[str, ...] = param(("vehicle",), "carved categories whose solids end at the top of "
+                                                 "their points (no overhang: the unseen air above a truck's bed is "
+                                                 "not solid)", choices=BOX_CATEGORIES)
+    envelope_reach_m: float = param(0.3, "a solid cell keeps the highest point of the columns this near", unit="m",
+                                    low=0.0)
+    envelope_pad_m: float = param(0.1, "a solid cell may start this far above that point", unit="m", low=0.0)
+    envelope_floor_m: float = param(0.3, "points this close above the box's bottom are ground, no top", unit="m",
+                                    low=0.0)
 
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
@@ -61,6 +69,7 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
         vertices, faces = ground_fill_mesh(background.points, max_edge_m=params.ground_fill_max_edge_m)
         background_surface = background_surface.with_triangles(vertices, faces, ground_fill_faces=len(faces))
     object_surfaces, object_solids = {}, {}
+    envelope = TopEnvelope(params.envelope_reach_m, params.envelope_pad_m, params.envelope_floor_m)
     for track, aggregate in inputs["objects"].items():
         if not aggregate.rigid:
             continue
@@ -69,7 +78,9 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
             object_solids[track] = object_solid_samples(aggregate.points, aggregate.sensor_origins, aggregate.size,
                                                         params.carve_resolution_m,
                                                         inputs["object_through_rays"].get(track),
-                                                        corners=aggregate.category in params.corner_categories)
+                                                        corners=aggregate.category in params.corner_categories,
+                                                        envelope=envelope if aggregate.category in
+                                                        params.envelope_categories else None)
         if len(aggregate.points) >= params.min_object_points:
             object_surfaces[track] = reconstruct(aggregate.points, aggregate.sensor_origins,
                                                  method=params.object_method, frame="box",

@@ -174,3 +174,27 @@ def test_solid_samples_are_cell_centres_or_their_corners_with_the_observed_cells
     np.testing.assert_allclose(centres.points[centres.observed], [[-0.45, 0.45, 0.45]])
     assert corners.points.shape == (8 * len(centres.points), 3) and corners.observed.sum() == 8
     np.testing.assert_allclose(np.abs(corners.points[corners.observed] - [-0.45, 0.45, 0.45]), 0.045)
+
+
+def test_the_top_envelope_removes_the_unseen_air_above_a_truck_bed_and_keeps_unknown_columns():
+    """A 6 x 2 x 2.5 m box holding a truck: a cab (x < 0) 2.5 m tall and a bed (x >= 0) 1.2 m tall, seen only on
+    its left side (y = +1) and the bed's floor; the right half is never seen. Over the bed the solid ends 0.1 m
+    above the bed; the cab's cells stay; columns with only ground returns keep their cells."""
+    from nuplan_occ.aggregation.carve import lattice_shape, under_top_envelope
+
+    size = np.array([6.0, 2.0, 2.5])
+    rng = np.random.default_rng(0)
+    cab = np.column_stack([rng.uniform(-3, 0, 3000), np.full(3000, 1.0), rng.uniform(-0.9, 1.25, 3000)])
+    bed_side = np.column_stack([rng.uniform(0, 3, 2000), np.full(2000, 1.0), rng.uniform(-0.9, -0.05, 2000)])
+    bed_floor = np.column_stack([rng.uniform(0, 3, 2000), rng.uniform(-1, 1, 2000), np.full(2000, -0.05)])
+    ground = np.column_stack([rng.uniform(-3, 3, 500), np.full(500, -0.95), np.full(500, -1.24)])
+    points = np.vstack([cab, bed_side, bed_floor, ground])
+    counts, edge = lattice_shape(size, 0.1)
+    ijk = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), axis=-1).reshape(-1, 3)
+    cells = (ijk + 0.5) * edge - size / 2
+    keep = under_top_envelope(cells, points, size, 0.1, reach_m=0.3, pad_m=0.1, floor_clearance_m=0.3)
+    bed = (cells[:, 0] > 0.5) & (cells[:, 1] > 0.5)
+    assert not keep[bed & (cells[:, 2] - edge[2] / 2 > 0.05 + 1e-9)].any()
+    assert keep[bed & (cells[:, 2] < -0.1)].all()
+    assert keep[(cells[:, 0] < -0.5) & (cells[:, 1] > 0.5)].all()  # the cab, up to its top
+    assert keep[(np.abs(cells[:, 1] + 0.95) < 0.05) & (cells[:, 0] < -0.5)].all()  # ground returns only: kept
