@@ -4,7 +4,7 @@ in its box frame, accumulated over the scene.
 Background: each sweep's background within `max_range_m` of its ego, without the points near its objects'
 corrected boxes (`object_clearance_m`), cropped to the output frames' grids plus `crop_margin_m` and thinned
 to one point per `voxel_downsample_m` cube; the outlier test the filter stage left to the aggregate (long
-scenes) runs on it, points under the cloud's ground are dropped (multipath ghosts, `below_ground_m`), then the points that other sweeps' rays saw through are removed as dynamic
+scenes) runs on it, points under the cloud's ground or whose rays went under it are dropped (multipath ghosts, `below_ground_m`), then the points that other sweeps' rays saw through are removed as dynamic
 (nuplan_occ.aggregation.dynamic). Objects: rigid categories accumulate over the whole scene, the others keep
 their frame ids for a window around each frame. For carving, the background rays of each sweep that cross
 the box of a rigid track of `through_categories` are kept in that box's frame (they show where the object
@@ -70,8 +70,9 @@ class AggregateParams:
     max_range_m: float = param(75.0, "background points farther than this from their sweep's ego (x-y) are not "
                                "aggregated (0: no limit)", unit="m", low=0.0)
     below_ground_m: float = param(0.5, "background points lower than this under the cloud's ground (a low "
-                                  "percentile per 1 m cell, lowest over 5 x 5 cells) are dropped: multipath "
-                                  "ghosts (0: off)", unit="m", low=0.0)
+                                  "percentile per 1 m cell, lowest over 5 x 5 cells), or whose ray runs that "
+                                  "low under a known ground on its way, are dropped: multipath ghosts (0: off)",
+                                  unit="m", low=0.0)
     through_categories: tuple[str, ...] = param(("czone_sign",), "rigid categories whose tracks keep the background "
                                                 "rays crossing their boxes, for carving", choices=BOX_CATEGORIES)
 
@@ -110,7 +111,8 @@ def run(inputs: dict, params: AggregateParams) -> dict:
         background, removed = without_outliers(background, inputs["aggregate_outliers"])
         outliers_removed = {position: int(n) for position, n in zip(with_background, removed)}
     if params.below_ground_m > 0:
-        background = background.subset(~below_ground(background.points, params.below_ground_m))
+        background = background.subset(~below_ground(background.points, params.below_ground_m,
+                                                     origins=background.frame_origins[background.frame_ids]))
     frame_movers = {position: np.zeros((0, 3), np.float32) for position in outputs}
     if params.remove_dynamic and ok:
         used = scene.spread_positions(params.dynamic_sweep_stride, params.dynamic_max_sweeps)
