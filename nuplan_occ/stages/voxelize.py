@@ -58,6 +58,10 @@ class VoxelizeParams:
                                         unit="m", low=0.0)
     mover_fragment_reach_m: float = param(1.0, "a shorter cluster within this gap of a vehicle cluster is a "
                                           "vehicle (0: none)", unit="m", low=0.0)
+    mover_bicycle_min_height_m: float = param(1.5, "a moving cluster is a bicycle only when its top stands at least "
+                                              "this high above its ground (a rider)", unit="m", low=0.0)
+    mover_classes: tuple[str, ...] = param(("vehicle", "bicycle"), "classes the unboxed-mover rule may give; a cluster it "
+                                           "would give another is other", choices=("vehicle", "bicycle"))
     mover_bicycle_ground_fill_m: float = param(0.5, "a bicycle's columns whose lowest voxel is at most this high "
                                                "reach down to the ground (0: none)", unit="m", low=0.0)
 
@@ -95,7 +99,9 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                               static_fraction=params.mover_static_fraction, ground_height=grids.ground_height,
                               ground_reach_m=params.mover_ground_reach_m,
                               fragment_reach_m=params.mover_fragment_reach_m,
-                              bicycle_ground_fill_m=params.mover_bicycle_ground_fill_m)
+                              bicycle_ground_fill_m=params.mover_bicycle_ground_fill_m,
+                              classes=tuple(LABELS.box_category_to_id[c] for c in params.mover_classes),
+                              bicycle_min_height_m=params.mover_bicycle_min_height_m)
         grids.mover_voxels = paint_empty(grids, movers)
     return {"grids": grids}
 

@@ -13,12 +13,16 @@ the other box categories are static. A cluster is
   or bus from any side: longer than any bicycle);
 - part of a vehicle when shorter but linked to a vehicle cluster by gaps of at most `fragment_reach_m`
   (through other clusters too: a vehicle's side seen in pieces, where parts stayed in the background);
-- a bicycle from `bicycle_extent_m` (longer than a pedestrian) when it moved: static structure the dynamic
-  test flagged (through gaps, at grazing angles) is flagged in the same place in other frames too, while a
-  cyclist has left its place within half a second. Clusters of which at least `static_fraction` of the
-  points recur (`recurring`: their place holds flagged points in another frame) are `other`. The test does
-  not serve vehicles: one moving along its length covers the cells it leaves;
+- a bicycle from `bicycle_extent_m` (longer than a pedestrian) when it moved and its top stands at least
+  `bicycle_min_height_m` above its ground (a rider; the back of a car seen from behind, the part of it above the
+  dynamic test's ground clearance, is lower). Moved: static structure the dynamic test flagged (through gaps, at
+  grazing angles) is flagged in the same place in other frames too, while a cyclist has left its place within
+  half a second. Clusters of which at least `static_fraction` of the points recur (`recurring`: their place
+  holds flagged points in another frame) are `other`. The test does not serve vehicles: one moving along its
+  length covers the cells it leaves;
 - else `other` (a pedestrian, a car seen from behind, a fragment).
+A class left out of `classes` is `other` too: the neutral label, for a class the rule does not give reliably
+(a wrong class is worse than a generic one).
 A bicycle stands on its wheels, whose lowest returns lie within the dynamic test's ground clearance and are
 not flagged: in each column of a bicycle cluster whose lowest voxel is at most `bicycle_ground_fill_m` above
 the column's ground voxel, the voxels from the ground voxel up to it are the bicycle's too (`over_ground`:
@@ -56,8 +60,12 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
                  vehicle_extent_m: float = 2.5, gap_voxels: int = 1, bicycle_extent_m: float = 1.0,
                  recurring: np.ndarray | None = None, static_fraction: float = 0.2,
                  ground_height: np.ndarray | None = None, ground_reach_m: float = 0.75,
-                 fragment_reach_m: float = 1.0, bicycle_ground_fill_m: float = 0.5) -> MoverVoxels:
+                 fragment_reach_m: float = 1.0, bicycle_ground_fill_m: float = 0.5,
+                 classes: tuple[int, ...] = (VEHICLE, BICYCLE), bicycle_min_height_m: float = 0.0) -> MoverVoxels:
     """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc).
+    classes: the class ids the rule may give (of VEHICLE, BICYCLE); a cluster it would give another is `other`.
+    bicycle_min_height_m: a bicycle cluster's top must stand at least this high above its ground (its own height
+    where the ground is unknown).
     recurring: (N,) bool, whether each point's place holds flagged points in the other frames too (None: no
     other frames to tell, so no cluster is known to have moved and none is a bicycle). ground_height: (X, Y)
     ground z per column, m, ego frame, NaN unknown (None, or unknown under a whole cluster: the cluster is
@@ -84,8 +92,11 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
         cluster_group = np.zeros(count, dtype=np.int64)
         cluster_group[cluster_of] = groups
         fragment = grounded & np.isin(cluster_group, cluster_group[vehicle])
-    cluster_class = np.select([~grounded, vehicle | fragment, (extent >= bicycle_extent_m) & (share < static_fraction)],
+    tall = _height(idx, cluster_of, count, grid, ground_height) >= bicycle_min_height_m - 1e-9
+    cluster_class = np.select([~grounded, vehicle | fragment,
+                               (extent >= bicycle_extent_m) & (share < static_fraction) & tall],
                               [OTHER, VEHICLE, BICYCLE], OTHER).astype(np.uint8)
+    cluster_class[~np.isin(cluster_class, classes)] = OTHER
     keep = sizes[cluster_of] >= min_voxels
     idx, class_ids = idx[keep], cluster_class[cluster_of[keep]]
     wheels = _down_to_ground(idx[class_ids == BICYCLE], grid, ground_height, bicycle_ground_fill_m)
@@ -116,6 +127,23 @@ def _down_to_ground(idx: np.ndarray, grid: GridSpec, ground_height: np.ndarray |
     row = np.repeat(np.arange(len(columns)), gap)
     step = np.arange(len(row)) - np.repeat(np.cumsum(gap) - gap, gap)
     return np.c_[columns[row], ground[row] + step].astype(np.int64)
+
+
+def _height(idx: np.ndarray, cluster_of: np.ndarray, count: int, grid: GridSpec, ground_height: np.ndarray | None
+            ) -> np.ndarray:
+    """(count,) m per cluster: the top of its highest voxel above the lowest known ground of its columns, or above
+    the bottom of its lowest voxel where none of its columns has a known ground."""
+    top = np.full(count, -np.inf)
+    np.maximum.at(top, cluster_of, grid.z_min + (idx[:, 2] + 1) * grid.voxel_size)
+    base = np.full(count, np.inf)
+    np.minimum.at(base, cluster_of, grid.z_min + idx[:, 2] * grid.voxel_size)
+    if ground_height is not None:
+        ground = ground_height[idx[:, 0], idx[:, 1]]
+        known = np.isfinite(ground)
+        floor = np.full(count, np.inf)
+        np.minimum.at(floor, cluster_of[known], ground[known])
+        base = np.where(np.isfinite(floor), floor, base)
+    return top - base
 
 
 def _standing(idx: np.ndarray, cluster_of: np.ndarray, count: int, grid: GridSpec, ground_height: np.ndarray | None,

@@ -131,3 +131,35 @@ def test_neighbour_movers_are_the_frames_the_given_count_before_and_after() -> N
     assert before[0, 0] == 10.0 and after[0, 0] == 50.0
     assert neighbour_movers(frame_movers, 20, 2) == []  # no frame two before it
     assert neighbour_movers(frame_movers, 40, 1)[1][0, 0] == 50.0
+
+
+def test_a_class_left_out_of_the_rule_gives_the_neutral_label() -> None:
+    """With classes=(VEHICLE,) the cyclist of the scene above is `other` (and gains no wheel columns) while the
+    car stays a vehicle."""
+    cyclist = _surface_points((12.1, 3.1, 0.0), (1.8, 0.6, 1.7))
+    car = _surface_points((25.1, -6.1, -0.1), (4.5, 1.8, 1.5))
+    ground = np.full(DEFAULT_GRID.shape[:2], -0.9)
+    recurring = np.zeros(len(cyclist) + len(car), bool)
+    result = mover_voxels(np.vstack([cyclist, car]), DEFAULT_GRID, recurring=recurring, ground_height=ground,
+                          classes=(VEHICLE,))
+    for part, expected in ((cyclist, OTHER), (car, VEHICLE)):
+        voxels = np.unique(DEFAULT_GRID.point_to_index(part)[0], axis=0)
+        hit = (result.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
+        assert set(result.class_ids[hit].tolist()) == {expected}
+    assert not result.over_ground.any() and BICYCLE not in result.class_ids
+
+
+def test_a_short_moving_cluster_below_a_riders_height_is_no_bicycle() -> None:
+    """The back of a car seen from behind (1.8 m wide, its flagged part 1.1 m tall above the ground clearance) moves
+    like a cyclist, but its top stands 1.4 m above the ground: `other` with bicycle_min_height_m 1.5; the cyclist
+    (1.7 m) stays a bicycle."""
+    ground = np.full(DEFAULT_GRID.shape[:2], -0.9)
+    cyclist = _surface_points((12.1, 3.1, 0.0), (1.8, 0.6, 1.7))
+    car_back = _surface_points((20.1, -3.1, -0.9 + 0.3 + 0.55), (0.3, 1.8, 1.1))
+    result = mover_voxels(np.vstack([cyclist, car_back]), DEFAULT_GRID,
+                          recurring=np.zeros(len(cyclist) + len(car_back), bool), ground_height=ground,
+                          bicycle_min_height_m=1.5)
+    for part, expected in ((cyclist, BICYCLE), (car_back, OTHER)):
+        voxels = np.unique(DEFAULT_GRID.point_to_index(part)[0], axis=0)
+        hit = (result.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
+        assert set(result.class_ids[hit].tolist()) == {expected}
