@@ -6,7 +6,9 @@ crosses the air above a truck, where the sky gives no return). Both are read fro
 over all its sweeps in its corrected box frame (origin at the box centre, x along the heading, z up; metres):
 - grow: each half extent grows to the `quantile` of the points' |x|, |y| and z, by at most a margin per side;
 - shrink: each half extent shrinks to that quantile plus `pad_m`, by at most `max_shrink` of the extent, and the
-  bottom rises to the low quantile of all the box's points (the road under a box reaching below it) less pad_m.
+  bottom rises to the low quantile of all the box's points (the road under a box reaching below it) less pad_m,
+  by at most `floor_clearance_m`: a box's floor band is where its road lies, and an object whose lower part
+  few returns saw (a truck behind parked cars) keeps it.
 Both are symmetric about the box centre in x and y, so an object seen from one side keeps its hidden half, and a
 centre off by d keeps d more on each side rather than cutting the object. Points within `floor_clearance_m` of the
 box's bottom (of the ground under it, for a shrink) are the ground, not the object, for every extent but the
@@ -86,7 +88,7 @@ def shrunk_extent(points: np.ndarray, size: np.ndarray, params: BoxFitParams) ->
     floor = half * (1.0 - params.max_shrink)
     reach = _reach(body, params.quantile) + params.pad_m
     new_half_xy = np.clip(reach[:2], floor[:2], half[:2])
-    bottom = float(np.clip(low - params.pad_m, -half[2], half[2]))
+    bottom = float(np.clip(low - params.pad_m, -half[2], -half[2] + params.floor_clearance_m))
     top = float(np.clip(reach[2], bottom, half[2]))
     height = max(top - bottom, 2 * floor[2])
     bottom = min(bottom, top - height)

@@ -77,3 +77,14 @@ def test_fitted_boxes_resize_every_sweep_of_a_track_and_raise_its_centre():
         assert np.allclose(b.sizes[0], [7.9, 2.6, 2.8], atol=0.05)
         assert abs(b.centers[0, 2] - b.sizes[0, 2] / 2 - (-0.1)) < 0.05  # bottom at the road less the pad
     assert fitted_extents(sweeps, lambda i: truck, np.zeros(3), BoxFitParams(shrink_categories=())) == {}
+
+
+def test_a_truck_seen_above_its_lower_part_keeps_it():
+    """A fitting truck box whose lower 1.5 m few returns saw (its upper part seen over parked cars): the bottom
+    rises by at most the floor band (0.3 m), not to the lowest returns, so the truck keeps its lower part."""
+    rng = np.random.default_rng(4)
+    points = _truck_surface(rng, ("left", "front", "top")) - [0.0, 0.0, 1.3]  # box frame, bottom at -1.3
+    seen = points[points[:, 2] > -1.3 + 1.5]
+    fit = shrunk_extent(seen, np.array([7.7, 2.4, 2.6]), BoxFitParams(pad_m=0.1, floor_clearance_m=0.3))
+    bottom = fit.z_shift - fit.half[2]
+    assert abs(bottom - (-1.3 + 0.3)) < 1e-9
