@@ -60,6 +60,11 @@ class VoxelizeParams:
                                           "vehicle (0: none)", unit="m", low=0.0)
     mover_bicycle_min_height_m: float = param(1.5, "a moving cluster is a bicycle only when its top stands at least "
                                               "this high above its ground (a rider)", unit="m", low=0.0)
+    mover_bicycle_max_width_m: float = param(1.5, "a moving cluster is a bicycle only when it spans at most this "
+                                             "across its motion (read from the frames mover_static_frames before "
+                                             "and after)", unit="m", low=0.0)
+    mover_motion_reach_m: float = param(4.0, "radius around a mover cluster in which those frames' flagged points "
+                                        "tell its motion", unit="m", low=0.0, low_open=True)
     mover_classes: tuple[str, ...] = param(("vehicle", "bicycle"), "classes the unboxed-mover rule may give; a cluster it "
                                            "would give another is other", choices=("vehicle", "bicycle"))
     mover_bicycle_ground_fill_m: float = param(0.5, "a bicycle's columns whose lowest voxel is at most this high "
@@ -101,7 +106,10 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                               fragment_reach_m=params.mover_fragment_reach_m,
                               bicycle_ground_fill_m=params.mover_bicycle_ground_fill_m,
                               classes=tuple(LABELS.box_category_to_id[c] for c in params.mover_classes),
-                              bicycle_min_height_m=params.mover_bicycle_min_height_m)
+                              bicycle_min_height_m=params.mover_bicycle_min_height_m,
+                              neighbours=tuple(transform_points(T_ego_from_scene, o) for o in others) if others else None,
+                              bicycle_max_width_m=params.mover_bicycle_max_width_m,
+                              motion_reach_m=params.mover_motion_reach_m)
         grids.mover_voxels = paint_empty(grids, movers)
     return {"grids": grids}
 

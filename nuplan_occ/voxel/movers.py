@@ -13,9 +13,13 @@ the other box categories are static. A cluster is
   or bus from any side: longer than any bicycle);
 - part of a vehicle when shorter but linked to a vehicle cluster by gaps of at most `fragment_reach_m`
   (through other clusters too: a vehicle's side seen in pieces, where parts stayed in the background);
-- a bicycle from `bicycle_extent_m` (longer than a pedestrian) when it moved and its top stands at least
-  `bicycle_min_height_m` above its ground (a rider; the back of a car seen from behind, the part of it above the
-  dynamic test's ground clearance, is lower). Moved: static structure the dynamic test flagged (through gaps, at
+- a bicycle from `bicycle_extent_m` (longer than a pedestrian) when it moved, its top stands at least
+  `bicycle_min_height_m` above its ground (a rider) and it spans at most `bicycle_max_width_m` across its motion
+  (a bicycle is narrow across the way it rides; the back of a car driving along the line of sight spans its
+  whole width across it, and is lower). Its motion is read from the flagged points of the frames just before
+  and after (`neighbours`): the shift of their mean within `motion_reach_m` of the cluster, over the points whose
+  place holds flagged points in only one of the two; no such points in either, or a shift under a voxel, and
+  the motion is unknown: not a bicycle. Moved: static structure the dynamic test flagged (through gaps, at
   grazing angles) is flagged in the same place in other frames too, while a cyclist has left its place within
   half a second. Clusters of which at least `static_fraction` of the points recur (`recurring`: their place
   holds flagged points in another frame) are `other`. The test does not serve vehicles: one moving along its
@@ -61,11 +65,17 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
                  recurring: np.ndarray | None = None, static_fraction: float = 0.2,
                  ground_height: np.ndarray | None = None, ground_reach_m: float = 0.75,
                  fragment_reach_m: float = 1.0, bicycle_ground_fill_m: float = 0.5,
-                 classes: tuple[int, ...] = (VEHICLE, BICYCLE), bicycle_min_height_m: float = 0.0) -> MoverVoxels:
+                 classes: tuple[int, ...] = (VEHICLE, BICYCLE), bicycle_min_height_m: float = 0.0,
+                 neighbours: tuple[np.ndarray, np.ndarray] | None = None, bicycle_max_width_m: float = np.inf,
+                 motion_reach_m: float = 4.0) -> MoverVoxels:
     """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc).
     classes: the class ids the rule may give (of VEHICLE, BICYCLE); a cluster it would give another is `other`.
     bicycle_min_height_m: a bicycle cluster's top must stand at least this high above its ground (its own height
     where the ground is unknown).
+    neighbours: the flagged points (M, 3), ego frame of this frame, of an earlier and a later frame (None: the
+    motion is not read and `bicycle_max_width_m` is not applied). bicycle_max_width_m: the widest a bicycle
+    cluster spans across its motion, m. motion_reach_m: horizontal radius around a cluster's centre in which the
+    neighbours' points tell its motion, m.
     recurring: (N,) bool, whether each point's place holds flagged points in the other frames too (None: no
     other frames to tell, so no cluster is known to have moved and none is a bicycle). ground_height: (X, Y)
     ground z per column, m, ego frame, NaN unknown (None, or unknown under a whole cluster: the cluster is
@@ -93,8 +103,12 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
         cluster_group[cluster_of] = groups
         fragment = grounded & np.isin(cluster_group, cluster_group[vehicle])
     tall = _height(idx, cluster_of, count, grid, ground_height) >= bicycle_min_height_m - 1e-9
-    cluster_class = np.select([~grounded, vehicle | fragment,
-                               (extent >= bicycle_extent_m) & (share < static_fraction) & tall],
+    bicycle = grounded & ~(vehicle | fragment) & (extent >= bicycle_extent_m) & (share < static_fraction) & tall
+    if neighbours is not None:
+        centres = grid.index_to_center(idx)[:, :2]
+        width = _width_across_motion(centres, cluster_of, count, bicycle, neighbours, motion_reach_m, grid.voxel_size)
+        bicycle &= width <= bicycle_max_width_m + 1e-9  # NaN (motion unknown) is no bicycle
+    cluster_class = np.select([~grounded, vehicle | fragment, bicycle],
                               [OTHER, VEHICLE, BICYCLE], OTHER).astype(np.uint8)
     cluster_class[~np.isin(cluster_class, classes)] = OTHER
     keep = sizes[cluster_of] >= min_voxels
@@ -109,6 +123,30 @@ def _cluster_max(values: np.ndarray, cluster_of: np.ndarray, count: int) -> np.n
     out = np.full((count, values.shape[1]), np.iinfo(np.int64).min, dtype=np.int64)
     np.maximum.at(out, cluster_of, values)
     return out
+
+
+def _width_across_motion(centres: np.ndarray, cluster_of: np.ndarray, count: int, clusters: np.ndarray,
+                         neighbours: tuple[np.ndarray, np.ndarray], reach_m: float, voxel_size: float) -> np.ndarray:
+    """(count,) m: for each cluster flagged in clusters (count,) bool, the span of its voxel centres (K, 2), x-y
+    m, across its motion plus one voxel; NaN for the others and where the motion is unknown (see module doc)."""
+    width = np.full(count, np.nan)
+    before, after = (np.asarray(n, dtype=np.float64).reshape(-1, 3) for n in neighbours)
+    before, after = (before[~recurring_points(before, [after], voxel_size)],
+                     after[~recurring_points(after, [before], voxel_size)])  # static places tell no motion
+    for cluster in np.flatnonzero(clusters):
+        own = centres[cluster_of == cluster]
+        centre = own.mean(axis=0)
+        near_before = before[np.hypot(*(before[:, :2] - centre).T) <= reach_m, :2]
+        near_after = after[np.hypot(*(after[:, :2] - centre).T) <= reach_m, :2]
+        if not len(near_before) or not len(near_after):
+            continue
+        motion = near_after.mean(axis=0) - near_before.mean(axis=0)
+        length = float(np.hypot(*motion))
+        if length < voxel_size:
+            continue
+        across = own @ (np.array([-motion[1], motion[0]]) / length)
+        width[cluster] = float(np.ptp(across)) + voxel_size
+    return width
 
 
 def _down_to_ground(idx: np.ndarray, grid: GridSpec, ground_height: np.ndarray | None, reach_m: float) -> np.ndarray:

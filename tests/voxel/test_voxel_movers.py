@@ -163,3 +163,32 @@ def test_a_short_moving_cluster_below_a_riders_height_is_no_bicycle() -> None:
         voxels = np.unique(DEFAULT_GRID.point_to_index(part)[0], axis=0)
         hit = (result.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
         assert set(result.class_ids[hit].tolist()) == {expected}
+
+
+def test_a_moving_cluster_wide_across_its_motion_is_no_bicycle() -> None:
+    """A cyclist riding along x seen side-on (1.8 m long, 0.6 m wide) and the back of a car driving away along x
+    seen from behind (0.3 m deep, 1.8 m wide, 1.7 m tall: a rider's height): the frames 0.5 s before and after
+    hold each one 2.5 m behind and ahead, and a post flagged in both (static: tells no motion). Across its motion
+    the cyclist spans < 1 m and stays a bicycle; the car's back spans 1.8 m: `other`. Without an earlier frame's
+    points the motion is unknown: neither is a bicycle; without neighbours the rule is not applied."""
+    ground = np.full(DEFAULT_GRID.shape[:2], -0.9)
+    cyclist = _surface_points((12.1, 3.1, 0.0), (1.8, 0.6, 1.7))
+    car_back = _surface_points((20.1, -6.1, -0.05), (0.3, 1.8, 1.7))
+    post = _surface_points((16.1, -1.1, -0.4), (0.2, 0.2, 1.0))
+    shift = np.array([2.5, 0.0, 0.0])
+    before = np.vstack([cyclist - shift, car_back - shift, post])
+    after = np.vstack([cyclist + shift, car_back + shift, post])
+    points = np.vstack([cyclist, car_back])
+    common = dict(recurring=np.zeros(len(points), bool), ground_height=ground, bicycle_max_width_m=1.5)
+
+    def classes(result, part) -> set[int]:
+        voxels = np.unique(DEFAULT_GRID.point_to_index(part)[0], axis=0)
+        hit = (result.indices[:, None, :] == voxels[None]).all(axis=2).any(axis=1)
+        return set(result.class_ids[hit].tolist())
+
+    read = mover_voxels(points, DEFAULT_GRID, neighbours=(before, after), **common)
+    assert classes(read, cyclist) == {BICYCLE} and classes(read, car_back) == {OTHER}
+    unknown = mover_voxels(points, DEFAULT_GRID, neighbours=(post, after), **common)
+    assert classes(unknown, cyclist) == {OTHER} and classes(unknown, car_back) == {OTHER}
+    not_read = mover_voxels(points, DEFAULT_GRID, **common)
+    assert classes(not_read, cyclist) == {BICYCLE} and classes(not_read, car_back) == {BICYCLE}
