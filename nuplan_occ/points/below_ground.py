@@ -9,8 +9,11 @@ Where the real ground is hidden (behind a building, under a row of parked cars),
 still make sparse cells of their own. Points of sparse cells are therefore also tested against the typical
 ground around (a median over some 15 m, which a few ghost cells do not move) with a deeper margin, and, with the
 sensor origins known, by their ray: it went under the ground it crossed on the way, so a point whose ray, followed
-back toward the sensor, runs lower than depth_m under a known ground is a ghost. Dense cells are never tested so:
-a ramp or a cutting seen by many sweeps keeps its low ground. Frame: any frame with z up (the ego or scene frame);
+back toward the sensor, runs lower than depth_m under a known ground is a ghost. Dense cells are not tested against
+the typical ground: a ramp or a cutting seen by many sweeps keeps its low ground; their points lying under the
+typical ground are tested by ray only (the rays into a real cutting pass over its rim). Ghosts piling up over many
+sweeps make dense cells too, and a cell's envelope takes their low ground: a second pass, over the points the first
+kept, finds those the first pass's ghosts hid. Frame: any frame with z up (the ego or scene frame);
 metres.
 """
 
@@ -22,10 +25,10 @@ import numpy as np
 from scipy import ndimage
 
 
-def ground_envelope(points: np.ndarray, cell_m: float = 1.0, percentile: float = 10.0, min_cell_points: int = 5,
-                    reach: int = 2) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(ground (I, J) m, NaN where no cell within reach has enough points; cell index (N, 2) of each point;
-    x0, y0: the lower corner of cell (0, 0)) of points (N, 3)."""
+def cell_lows(points: np.ndarray, cell_m: float = 1.0, percentile: float = 10.0, min_cell_points: int = 5
+              ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(low (I, J) m: the percentile of the heights of each x-y cell's points, NaN where a cell has fewer than
+    min_cell_points; cell index (N, 2) of each point; x0, y0: the lower corner of cell (0, 0)) of points (N, 3)."""
     xyz = np.asarray(points, np.float64).reshape(-1, 3)
     if not len(xyz):
         return np.full((0, 0), np.nan), np.zeros((0, 2), np.int64), 0.0, 0.0
@@ -37,11 +40,23 @@ def ground_envelope(points: np.ndarray, cell_m: float = 1.0, percentile: float =
     counts = np.bincount(flat, minlength=shape[0] * shape[1])
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     rank = np.floor(percentile / 100.0 * np.maximum(counts - 1, 0)).astype(np.int64)
-    low = np.full(shape[0] * shape[1], np.inf)
+    low = np.full(shape[0] * shape[1], np.nan)
     enough = counts >= min_cell_points
     low[enough] = xyz[order[starts[enough] + rank[enough]], 2]
-    ground = ndimage.minimum_filter(low.reshape(shape), size=2 * reach + 1, mode="constant", cval=np.inf)
-    return np.where(np.isfinite(ground), ground, np.nan), cell, x0, y0
+    return low.reshape(shape), cell, x0, y0
+
+
+def ground_envelope(points: np.ndarray, cell_m: float = 1.0, percentile: float = 10.0, min_cell_points: int = 5,
+                    reach: int = 2) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(ground (I, J) m, NaN where no cell within reach has enough points; cell index (N, 2) of each point;
+    x0, y0: the lower corner of cell (0, 0)) of points (N, 3): the lowest `cell_lows` within reach cells."""
+    low, cell, x0, y0 = cell_lows(points, cell_m, percentile, min_cell_points)
+    return _envelope(low, reach), cell, x0, y0
+
+
+def _envelope(low: np.ndarray, reach: int) -> np.ndarray:
+    ground = ndimage.minimum_filter(np.nan_to_num(low, nan=np.inf), size=2 * reach + 1, mode="constant", cval=np.inf)
+    return np.where(np.isfinite(ground), ground, np.nan)
 
 
 def typical_ground(ground: np.ndarray, block: int) -> np.ndarray:
@@ -83,6 +98,15 @@ each sqrt(2) times the last (a ray runs deep enough under known ground over an i
 sqrt(2) miss only intervals shorter than that ratio)."""
 
 
+GROUND_LIKE_M = 1.0
+"""Points at most this high above their cell's low percentile are ground-like (the road, a kerb, a pile of ghosts) and
+ray-tested; a wall's or a car's points above are not."""
+
+PASSES = 2
+"""Passes of `below_ground`: a cluster of ghosts is its own low ground, and hides the ghosts beside it until the
+first pass has taken its edge."""
+
+
 def _ground_at(ground: np.ndarray, xy: np.ndarray, x0: float, y0: float, cell_m: float) -> np.ndarray:
     """(N,) the envelope's ground at x-y positions (N, 2), NaN outside it or where unknown."""
     cell = np.floor((xy - [x0, y0]) / cell_m).astype(np.int64)
@@ -94,37 +118,65 @@ def _ground_at(ground: np.ndarray, xy: np.ndarray, x0: float, y0: float, cell_m:
 
 def below_ground(points: np.ndarray, depth_m: float = 0.5, cell_m: float = 1.0, percentile: float = 10.0,
                  min_cell_points: int = 5, reach: int = 2, origins: np.ndarray | None = None, sparse_depth_m: float = SPARSE_DEPTH_M, block: int = TYPICAL_BLOCK,
-                 ray_back_m: tuple[float, ...] = RAY_BACK_M, chunk: int = 1_000_000) -> np.ndarray:
-    """(N,) bool: ghosts among points (N, 3): lower than depth_m under their ground (`ground_envelope`); or, in a
-    sparse cell (fewer than SPARSE_CELL_FACTOR x min_cell_points points) or one of unknown ground, lower than
-    sparse_depth_m under the `typical_ground` around (blocks of `block` cells), or, with their sensor origins (N,
-    3) given, with a ray that runs lower than depth_m under a known ground at one of the horizontal distances
-    ray_back_m back from the point (within the ray's length). `chunk` bounds the points ray-tested at once."""
-    ground, cell, x0, y0 = ground_envelope(points, cell_m, percentile, min_cell_points, reach)
+                 ray_back_m: tuple[float, ...] = RAY_BACK_M, passes: int = PASSES, chunk: int = 1_000_000) -> np.ndarray:
+    """(N,) bool: ghosts among points (N, 3), found in `passes` passes, each over the points the earlier ones kept
+    (`_ghost_pass`): lower than depth_m under their ground (`ground_envelope`, or the `typical_ground` around where
+    that is lower: a cell of wall whose foot was hidden does not hold the ground up); or, in a sparse cell (fewer
+    than SPARSE_CELL_FACTOR x min_cell_points points) or one of unknown ground, lower than sparse_depth_m under the
+    typical ground (blocks of `block` cells); or, with their sensor origins (N, 3) given, sparse or lower than
+    depth_m under the typical ground, with a ray that runs lower than depth_m under that ground at one of the
+    horizontal distances ray_back_m back from the point (within the ray's length). `chunk` bounds the points
+    ray-tested at once."""
+    xyz = np.asarray(points, np.float64).reshape(-1, 3)
+    origins = None if origins is None else np.broadcast_to(np.asarray(origins, np.float64), xyz.shape)
+    ghost = np.zeros(len(xyz), dtype=bool)
+    kept = np.arange(len(xyz))
+    for _ in range(max(passes, 1)):
+        found = _ghost_pass(xyz[kept], None if origins is None else origins[kept], depth_m, cell_m, percentile,
+                            min_cell_points, reach, sparse_depth_m, block, ray_back_m, chunk)
+        if not found.any():
+            break
+        ghost[kept[found]] = True
+        kept = kept[~found]
+    return ghost
+
+
+def _ghost_pass(xyz: np.ndarray, origins: np.ndarray | None, depth_m: float, cell_m: float, percentile: float,
+                min_cell_points: int, reach: int, sparse_depth_m: float, block: int, ray_back_m: tuple[float, ...],
+                chunk: int) -> np.ndarray:
+    """(N,) bool: one pass of `below_ground` over xyz (N, 3) with their origins (N, 3) or None."""
+    low, cell, x0, y0 = cell_lows(xyz, cell_m, percentile, min_cell_points)
     if not len(cell):
         return np.zeros(0, dtype=bool)
-    xyz = np.asarray(points, np.float64).reshape(-1, 3)
+    ground = _envelope(low, reach)
+    typical_grid = typical_ground(ground, block)
+    ground = np.where(np.isnan(typical_grid), ground, np.minimum(ground, typical_grid))  # unknown stays unknown
+    ray_ground = np.where(np.isnan(low), ground, np.fmin(low, typical_grid))
+    typical = typical_grid[cell[:, 0], cell[:, 1]]
     under = ground[cell[:, 0], cell[:, 1]] - depth_m
     ghost = xyz[:, 2] < np.where(np.isnan(under), -np.inf, under)
     flat = cell[:, 0] * ground.shape[1] + cell[:, 1]
     sparse = (np.bincount(flat, minlength=ground.size)[flat] < SPARSE_CELL_FACTOR * min_cell_points) | np.isnan(under)
-    typical = typical_ground(ground, block)[cell[:, 0], cell[:, 1]] - sparse_depth_m
-    ghost |= sparse & (xyz[:, 2] < np.where(np.isnan(typical), -np.inf, typical))
+    ghost |= sparse & (xyz[:, 2] < np.where(np.isnan(typical), -np.inf, typical - sparse_depth_m))
     if origins is None or not ray_back_m:
         return ghost
-    unsupported = np.flatnonzero(sparse & ~ghost)
-    origins = np.broadcast_to(np.asarray(origins, np.float64), xyz.shape)
+    own_low = low[cell[:, 0], cell[:, 1]]
+    ground_like = xyz[:, 2] < np.where(np.isnan(own_low), np.inf, own_low + GROUND_LIKE_M)
+    unsupported = np.flatnonzero(ground_like & ~ghost)
+    highest = float(np.nanmax(ray_ground)) if np.isfinite(ray_ground).any() else -np.inf
     for start in range(0, len(unsupported), chunk):
         rows = unsupported[start:start + chunk]
         p, o = xyz[rows], origins[rows]
         toward = o - p
         length = np.hypot(toward[:, 0], toward[:, 1])
+        rise = toward[:, 2] / np.maximum(length, 1e-9)  # height gained per metre back toward the sensor
+        reach = np.where(rise > 0, (highest - depth_m - p[:, 2]) / np.where(rise > 0, rise, 1.0), np.inf)
         for back in ray_back_m:
-            within = (length > back) & ~ghost[rows]
+            within = (length > back) & (back < reach) & ~ghost[rows]  # beyond reach the ray is above every ground
             if not within.any():
                 continue
             share = back / length[within]
             sample = p[within] + share[:, None] * toward[within]
-            low = sample[:, 2] < _ground_at(ground, sample[:, :2], x0, y0, cell_m) - depth_m
-            ghost[rows[within][low]] = True
+            deep = sample[:, 2] < _ground_at(ray_ground, sample[:, :2], x0, y0, cell_m) - depth_m
+            ghost[rows[within][deep]] = True
     return ghost
