@@ -90,6 +90,8 @@ class TrackParams:
                                                choices=BOX_CATEGORIES)
     shrink_max: float = param(FIT.max_shrink, "largest share of a box's length, width or height a shrink removes "
                               "(0: off)", low=0.0, high=1.0)
+    shrink_quantile: float = param(FIT.shrink_quantile, "a shrink keeps this share of the track's points' reach on "
+                                   "each axis", low=0.0, high=1.0)
     shrink_pad_m: float = param(FIT.pad_m, "a shrunk box reaches this far beyond its points", unit="m", low=0.0)
     snap_keep_ratio: float = param(SNAP.keep_ratio, "a box already holding this share of the best shift's points "
                                    "stays", low=0.0, high=1.0)
@@ -135,7 +137,8 @@ def run(inputs: dict, params: TrackParams) -> dict:
                                                 [final[track][frames_of[track].index(i)] for track in boxes.track_tokens])
     fit = BoxFitParams(grow_margin_m=params.fit_margin_m, grow_categories=params.fit_categories,
                        shrink_categories=params.shrink_categories, max_shrink=params.shrink_max,
-                       pad_m=params.shrink_pad_m, floor_clearance_m=params.empty_clearance_m)
+                       shrink_quantile=params.shrink_quantile, pad_m=params.shrink_pad_m,
+                       floor_clearance_m=params.empty_clearance_m)
     object_boxes = fitted_boxes(object_boxes, fitted_extents(object_boxes, lambda i: scene.sweeps[i].xyz, origin, fit))
     for i in ok:
         object_points[i] = points_per_box(scene.sweeps[i].xyz, object_boxes[i], origin)

@@ -5,7 +5,8 @@ would be drawn solid: the space carving only clears what rays to the object's ow
 crosses the air above a truck, where the sky gives no return). Both are read from the track's points gathered
 over all its sweeps in its corrected box frame (origin at the box centre, x along the heading, z up; metres):
 - grow: each half extent grows to the `quantile` of the points' |x|, |y| and z, by at most a margin per side;
-- shrink: each half extent shrinks to that quantile plus `pad_m`, by at most `max_shrink` of the extent, and the
+- shrink: each half extent shrinks to the `shrink_quantile` of the same plus `pad_m` (a higher quantile: the
+  parts of an object few sweeps saw, a truck's body below the cars around it, are a small share of its points), by at most `max_shrink` of the extent, and the
   bottom rises to the low quantile of all the box's points (the road under a box reaching below it) less pad_m,
   by at most `floor_clearance_m`: a box's floor band is where its road lies, and an object whose lower part
   few returns saw (a truck behind parked cars) keeps it.
@@ -29,8 +30,9 @@ class BoxFitParams:
     """grow_margin_m: largest growth per side (m; 0: no growing); grow_categories: categories whose boxes may grow;
     shrink_categories: categories whose boxes may shrink; max_shrink: largest share of an extent a shrink removes
     (0: no shrinking); pad_m: room left beyond the points' quantile (m); floor_clearance_m: points this close
-    above the box's bottom are the ground (m); quantile: of the points' reach, so that a few stray returns in a
-    box do not hold it open; min_points: a track with fewer object points over its sweeps keeps its box."""
+    above the box's bottom are the ground (m); quantile: of the points' reach for a grow, so that a few stray
+    returns around a box do not widen it; shrink_quantile: the same for a shrink, so that they do not hold it
+    open; min_points: a track with fewer object points over its sweeps keeps its box."""
 
     grow_margin_m: float = 0.3
     grow_categories: tuple[str, ...] = ("pedestrian",)
@@ -39,6 +41,7 @@ class BoxFitParams:
     pad_m: float = 0.1
     floor_clearance_m: float = 0.3
     quantile: float = 0.99
+    shrink_quantile: float = 0.999
     min_points: int = 20
 
 
@@ -81,12 +84,12 @@ def shrunk_extent(points: np.ndarray, size: np.ndarray, params: BoxFitParams) ->
     half = size / 2
     if len(points) < params.min_points or params.max_shrink <= 0:
         return None
-    low = max(float(np.quantile(points[:, 2], 1.0 - params.quantile)), -half[2])
+    low = max(float(np.quantile(points[:, 2], 1.0 - params.shrink_quantile)), -half[2])
     body = points[points[:, 2] > low + params.floor_clearance_m]
     if len(body) < params.min_points:
         return None
     floor = half * (1.0 - params.max_shrink)
-    reach = _reach(body, params.quantile) + params.pad_m
+    reach = _reach(body, params.shrink_quantile) + params.pad_m
     new_half_xy = np.clip(reach[:2], floor[:2], half[:2])
     bottom = float(np.clip(low - params.pad_m, -half[2], -half[2] + params.floor_clearance_m))
     top = float(np.clip(reach[2], bottom, half[2]))

@@ -88,3 +88,17 @@ def test_a_truck_seen_above_its_lower_part_keeps_it():
     fit = shrunk_extent(seen, np.array([7.7, 2.4, 2.6]), BoxFitParams(pad_m=0.1, floor_clearance_m=0.3))
     bottom = fit.z_shift - fit.half[2]
     assert abs(bottom - (-1.3 + 0.3)) < 1e-9
+
+
+def test_a_truck_whose_full_length_few_sweeps_saw_keeps_its_length():
+    """A fitting 7 m truck box: 20000 returns on its cab (the middle 3 m, seen over the cars around it) and 600 on its
+    full-length body below (3 %: the few sweeps that saw it). The shrink's 0.999 quantile keeps the length; the
+    0.99 of a grow would cut it to the cap."""
+    rng = np.random.default_rng(5)
+    cab = rng.uniform([-1.5, -1.2, 0.0], [1.5, 1.2, 1.5], (20000, 3))
+    body = rng.uniform([-3.5, -1.2, -1.2], [3.5, 1.2, 0.0], (600, 3))
+    size = np.array([7.0, 2.4, 3.0])
+    fit = shrunk_extent(np.vstack([cab, body]), size, BoxFitParams(pad_m=0.1))
+    assert fit is None or fit.half[0] >= 3.4  # within 0.1 m of the true half length
+    cut = shrunk_extent(np.vstack([cab, body]), size, BoxFitParams(pad_m=0.1, shrink_quantile=0.99))
+    assert abs(cut.half[0] - 3.5 * 0.75) < 1e-9
