@@ -193,13 +193,11 @@ def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np
 
 
 def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float,
-                       reach_m: float, pad_m: float, floor_clearance_m: float, fill_reach_m: float = 0.0) -> np.ndarray:
+                       reach_m: float, pad_m: float, floor_clearance_m: float) -> np.ndarray:
     """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size,
     resolution)`) whose bottom lies at most pad_m above the highest of the object's body points (points_box
     (N, 3) inside the box and more than floor_clearance_m above its bottom) in the columns within reach_m (x and
-    y) of theirs; a column with no such point within reach takes the highest within fill_reach_m (the inside of a
-    truck's bed that no return came from, whose sides were seen); cells of columns with none there either are kept
-    (True). Metres."""
+    y) of theirs; cells of columns with no such point within reach are kept (True). Metres."""
     size = np.asarray(size, np.float64)
     counts, edge = lattice_shape(size, resolution)
     points = np.asarray(points_box, np.float64).reshape(-1, 3)
@@ -207,11 +205,8 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
     inside, flat = lattice_cells(points, size, edge, counts)
     top = np.full(int(counts[0] * counts[1]), -np.inf)
     np.maximum.at(top, flat // counts[2], points[inside, 2])
-    top = top.reshape(counts[0], counts[1])
-    near = _column_max(top, reach_m, edge)
-    if fill_reach_m > reach_m:
-        near = np.where(np.isneginf(near), _column_max(top, fill_reach_m, edge), near)
-    top = near
+    reach = int(np.ceil(reach_m / min(edge[0], edge[1]) - 1e-9))
+    top = ndimage.maximum_filter(top.reshape(counts[0], counts[1]), size=2 * reach + 1, mode="constant", cval=-np.inf)
     cells = np.asarray(cells_box, np.float64).reshape(-1, 3)
     column = np.floor((cells[:, :2] + size[:2] / 2) / edge[:2]).astype(np.int64)
     column = np.clip(column, 0, counts[:2] - 1)
@@ -219,20 +214,13 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
     return np.isneginf(column_top) | (cells[:, 2] - edge[2] / 2 <= column_top + pad_m)
 
 
-def _column_max(top: np.ndarray, reach_m: float, edge: np.ndarray) -> np.ndarray:
-    """(I, J) the highest of top (I, J) over the columns within reach_m (x and y; columns of edge (3,))."""
-    reach = int(np.ceil(reach_m / min(edge[0], edge[1]) - 1e-9))
-    return ndimage.maximum_filter(top, size=2 * reach + 1, mode="constant", cval=-np.inf)
-
-
 @dataclass(frozen=True)
 class TopEnvelope:
-    """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m, fill_reach_m."""
+    """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m."""
 
     reach_m: float
     pad_m: float
     floor_clearance_m: float
-    fill_reach_m: float = 0.0
 
 
 def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float,
@@ -246,7 +234,7 @@ def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: 
     cells = carve_object_solid(points_box, origins_box, size, resolution=resolution, through=through)
     if envelope is not None:
         cells = cells[under_top_envelope(cells, points_box, size, resolution, envelope.reach_m, envelope.pad_m,
-                                         envelope.floor_clearance_m, envelope.fill_reach_m)]
+                                         envelope.floor_clearance_m)]
     observed = cells_holding_points(cells, points_box, size, resolution)
     if corners:
         return SolidSamples(cell_corner_points(cells, size, resolution), np.repeat(observed, 8))

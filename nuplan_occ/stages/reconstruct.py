@@ -54,8 +54,6 @@ class ReconstructParams:
                                                  "not solid)", choices=BOX_CATEGORIES)
     envelope_reach_m: float = param(0.3, "a solid cell keeps the highest point of the columns this near", unit="m",
                                     low=0.0)
-    envelope_fill_reach_m: float = param(1.5, "a column with no point that near takes the highest point this near "
-                                         "(0: its cells stay)", unit="m", low=0.0)
     envelope_pad_m: float = param(0.1, "a solid cell may start this far above that point", unit="m", low=0.0)
     envelope_floor_m: float = param(0.3, "points this close above the box's bottom are ground, no top", unit="m",
                                     low=0.0)
@@ -71,8 +69,7 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
         vertices, faces = ground_fill_mesh(background.points, max_edge_m=params.ground_fill_max_edge_m)
         background_surface = background_surface.with_triangles(vertices, faces, ground_fill_faces=len(faces))
     object_surfaces, object_solids = {}, {}
-    envelope = TopEnvelope(params.envelope_reach_m, params.envelope_pad_m, params.envelope_floor_m,
-                           params.envelope_fill_reach_m)
+    envelope = TopEnvelope(params.envelope_reach_m, params.envelope_pad_m, params.envelope_floor_m)
     for track, aggregate in inputs["objects"].items():
         if not aggregate.rigid:
             continue

@@ -198,30 +198,3 @@ def test_the_top_envelope_removes_the_unseen_air_above_a_truck_bed_and_keeps_unk
     assert keep[bed & (cells[:, 2] < -0.1)].all()
     assert keep[(cells[:, 0] < -0.5) & (cells[:, 1] > 0.5)].all()  # the cab, up to its top
     assert keep[(np.abs(cells[:, 1] + 0.95) < 0.05) & (cells[:, 0] < -0.5)].all()  # ground returns only: kept
-
-
-def test_unseen_columns_take_the_top_seen_beside_them():
-    """The truck above seen on its left side only (returns 5 cm inside its box) (no return from the bed's floor): the bed's inner columns, more
-    than 0.3 m from the side, hold no point. With fill_reach_m 1.5 they take the highest point within 1.5 m: beyond
-    1.5 m from the cab, the bed side's top, so the air over the bed goes (up to 1.5 m from the side), while the cab's
-    inner columns keep their cells (its side reaches its roof).
-    Without it (0) the bed's inner columns keep the whole box."""
-    from nuplan_occ.aggregation.carve import lattice_shape, under_top_envelope
-
-    size = np.array([6.0, 2.0, 2.5])
-    rng = np.random.default_rng(1)
-    cab = np.column_stack([rng.uniform(-3, 0, 3000), np.full(3000, 0.95), rng.uniform(-0.9, 1.25, 3000)])
-    bed_side = np.column_stack([rng.uniform(0, 3, 2000), np.full(2000, 0.95), rng.uniform(-0.9, -0.05, 2000)])
-    points = np.vstack([cab, bed_side])
-    counts, edge = lattice_shape(size, 0.1)
-    ijk = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), axis=-1).reshape(-1, 3)
-    cells = (ijk + 0.5) * edge - size / 2
-    filled = under_top_envelope(cells, points, size, 0.1, reach_m=0.3, pad_m=0.1, floor_clearance_m=0.3,
-                                fill_reach_m=1.5)
-    inner_bed = (cells[:, 0] > 1.6) & (cells[:, 1] > -0.4) & (cells[:, 1] < 0.6)
-    above_bed = cells[:, 2] - edge[2] / 2 > 0.05 + 1e-9
-    assert not filled[inner_bed & above_bed].any() and filled[inner_bed & (cells[:, 2] < -0.05)].all()
-    assert filled[(cells[:, 0] < -0.5) & (cells[:, 1] > -0.4)].all()  # the cab, inner columns included
-    assert filled[(cells[:, 1] < -0.6)].all()  # beyond 1.5 m from any point: unknown, kept
-    unfilled = under_top_envelope(cells, points, size, 0.1, reach_m=0.3, pad_m=0.1, floor_clearance_m=0.3)
-    assert unfilled[inner_bed].all()
