@@ -118,7 +118,7 @@ def _ground_at(ground: np.ndarray, xy: np.ndarray, x0: float, y0: float, cell_m:
 
 def below_ground(points: np.ndarray, depth_m: float = 0.5, cell_m: float = 1.0, percentile: float = 10.0,
                  min_cell_points: int = 5, reach: int = 2, origins: np.ndarray | None = None, sparse_depth_m: float = SPARSE_DEPTH_M, block: int = TYPICAL_BLOCK,
-                 ray_back_m: tuple[float, ...] = RAY_BACK_M, passes: int = PASSES, chunk: int = 1_000_000) -> np.ndarray:
+                 ray_back_m: tuple[float, ...] = RAY_BACK_M, passes: int = PASSES, chunk: int = 250_000) -> np.ndarray:
     """(N,) bool: ghosts among points (N, 3), found in `passes` passes, each over the points the earlier ones kept
     (`_ghost_pass`): lower than depth_m under their ground (`ground_envelope`, or the `typical_ground` around where
     that is lower: a cell of wall whose foot was hidden does not hold the ground up); or, in a sparse cell (fewer
@@ -128,11 +128,11 @@ def below_ground(points: np.ndarray, depth_m: float = 0.5, cell_m: float = 1.0, 
     horizontal distances ray_back_m back from the point (within the ray's length). `chunk` bounds the points
     ray-tested at once."""
     xyz = np.asarray(points, np.float64).reshape(-1, 3)
-    origins = None if origins is None else np.broadcast_to(np.asarray(origins, np.float64), xyz.shape)
+    origins = None if origins is None else np.broadcast_to(np.asarray(origins), xyz.shape)
     ghost = np.zeros(len(xyz), dtype=bool)
     kept = np.arange(len(xyz))
     for _ in range(max(passes, 1)):
-        found = _ghost_pass(xyz[kept], None if origins is None else origins[kept], depth_m, cell_m, percentile,
+        found = _ghost_pass(xyz if len(kept) == len(xyz) else xyz[kept], origins, kept, depth_m, cell_m, percentile,
                             min_cell_points, reach, sparse_depth_m, block, ray_back_m, chunk)
         if not found.any():
             break
@@ -141,10 +141,11 @@ def below_ground(points: np.ndarray, depth_m: float = 0.5, cell_m: float = 1.0, 
     return ghost
 
 
-def _ghost_pass(xyz: np.ndarray, origins: np.ndarray | None, depth_m: float, cell_m: float, percentile: float,
-                min_cell_points: int, reach: int, sparse_depth_m: float, block: int, ray_back_m: tuple[float, ...],
-                chunk: int) -> np.ndarray:
-    """(N,) bool: one pass of `below_ground` over xyz (N, 3) with their origins (N, 3) or None."""
+def _ghost_pass(xyz: np.ndarray, origins: np.ndarray | None, rows_of: np.ndarray, depth_m: float, cell_m: float,
+                percentile: float, min_cell_points: int, reach: int, sparse_depth_m: float, block: int,
+                ray_back_m: tuple[float, ...], chunk: int) -> np.ndarray:
+    """(N,) bool: one pass of `below_ground` over xyz (N, 3), whose origins are origins[rows_of] (origins (M, 3) or
+    None; rows_of (N,) int, so that no pass copies them all)."""
     low, cell, x0, y0 = cell_lows(xyz, cell_m, percentile, min_cell_points)
     if not len(cell):
         return np.zeros(0, dtype=bool)
@@ -166,13 +167,13 @@ def _ghost_pass(xyz: np.ndarray, origins: np.ndarray | None, depth_m: float, cel
     highest = float(np.nanmax(ray_ground)) if np.isfinite(ray_ground).any() else -np.inf
     for start in range(0, len(unsupported), chunk):
         rows = unsupported[start:start + chunk]
-        p, o = xyz[rows], origins[rows]
-        toward = o - p
+        p = xyz[rows]
+        toward = np.asarray(origins[rows_of[rows]], np.float64) - p
         length = np.hypot(toward[:, 0], toward[:, 1])
         rise = toward[:, 2] / np.maximum(length, 1e-9)  # height gained per metre back toward the sensor
-        reach = np.where(rise > 0, (highest - depth_m - p[:, 2]) / np.where(rise > 0, rise, 1.0), np.inf)
+        deep_for = np.where(rise > 0, (highest - depth_m - p[:, 2]) / np.where(rise > 0, rise, 1.0), np.inf)
         for back in ray_back_m:
-            within = (length > back) & (back < reach) & ~ghost[rows]  # beyond reach the ray is above every ground
+            within = (length > back) & (back < deep_for) & ~ghost[rows]  # beyond reach the ray is above every ground
             if not within.any():
                 continue
             share = back / length[within]
