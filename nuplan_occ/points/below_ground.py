@@ -10,8 +10,8 @@ still make sparse cells of their own. Points of sparse cells are therefore also 
 ground around (a median over some 15 m, which a few ghost cells do not move) with a deeper margin, and, with the
 sensor origins known, by their ray: it went under the ground it crossed on the way, so a point whose ray, followed
 back toward the sensor, runs lower than depth_m under a known ground is a ghost. Dense cells are not tested against
-the typical ground: a ramp or a cutting seen by many sweeps keeps its low ground; their points lying under the
-typical ground are tested by ray only (the rays into a real cutting pass over its rim). Ghosts piling up over many
+the typical ground: a ramp or a cutting seen by many sweeps keeps its low ground; their ground-like points (near
+their cell's low) are tested by ray only (the rays into a real cutting pass over its rim). Ghosts piling up over many
 sweeps make dense cells too, and a cell's envelope takes their low ground: a second pass, over the points the first
 kept, finds those the first pass's ghosts hid. Frame: any frame with z up (the ego or scene frame);
 metres.
@@ -55,6 +55,7 @@ def ground_envelope(points: np.ndarray, cell_m: float = 1.0, percentile: float =
 
 
 def _envelope(low: np.ndarray, reach: int) -> np.ndarray:
+    """(I, J) the lowest of the cell lows (I, J), NaN unknown, within reach cells; NaN where none is known."""
     ground = ndimage.minimum_filter(np.nan_to_num(low, nan=np.inf), size=2 * reach + 1, mode="constant", cval=np.inf)
     return np.where(np.isfinite(ground), ground, np.nan)
 
@@ -123,10 +124,10 @@ def below_ground(points: np.ndarray, depth_m: float = 0.5, cell_m: float = 1.0, 
     (`_ghost_pass`): lower than depth_m under their ground (`ground_envelope`, or the `typical_ground` around where
     that is lower: a cell of wall whose foot was hidden does not hold the ground up); or, in a sparse cell (fewer
     than SPARSE_CELL_FACTOR x min_cell_points points) or one of unknown ground, lower than sparse_depth_m under the
-    typical ground (blocks of `block` cells); or, with their sensor origins (N, 3) given, sparse or lower than
-    depth_m under the typical ground, with a ray that runs lower than depth_m under that ground at one of the
-    horizontal distances ray_back_m back from the point (within the ray's length). `chunk` bounds the points
-    ray-tested at once."""
+    typical ground (blocks of `block` cells); or, with their sensor origins (N, 3) given, ground-like (at most
+    GROUND_LIKE_M above their cell's low percentile) with a ray that runs lower than depth_m under the ground it
+    crosses (each cell's own low, capped by the typical ground) at one of the horizontal distances ray_back_m back
+    from the point (within the ray's length). `chunk` bounds the points ray-tested at once."""
     xyz = np.asarray(points, np.float64).reshape(-1, 3)
     origins = None if origins is None else np.broadcast_to(np.asarray(origins), xyz.shape)
     ghost = np.zeros(len(xyz), dtype=bool)
@@ -173,7 +174,7 @@ def _ghost_pass(xyz: np.ndarray, origins: np.ndarray | None, rows_of: np.ndarray
         rise = toward[:, 2] / np.maximum(length, 1e-9)  # height gained per metre back toward the sensor
         deep_for = np.where(rise > 0, (highest - depth_m - p[:, 2]) / np.where(rise > 0, rise, 1.0), np.inf)
         for back in ray_back_m:
-            within = (length > back) & (back < deep_for) & ~ghost[rows]  # beyond reach the ray is above every ground
+            within = (length > back) & (back < deep_for) & ~ghost[rows]  # further back the ray is above every ground
             if not within.any():
                 continue
             share = back / length[within]
