@@ -7,9 +7,9 @@ over all its sweeps in its corrected box frame (origin at the box centre, x alon
 - grow: each half extent grows to the `quantile` of the points' |x|, |y| and z, by at most a margin per side;
 - shrink: each half extent shrinks to the `shrink_quantile` of the same plus `pad_m` (a higher quantile: the
   parts of an object few sweeps saw, a truck's body below the cars around it, are a small share of its points),
-  by at most `max_shrink` of the extent, and the bottom rises to the low quantile of all the box's points (the road under a box reaching below it) less pad_m,
-  by at most `floor_clearance_m`: a box's floor band is where its road lies, and an object whose lower part
-  few returns saw (a truck behind parked cars) keeps it.
+  by at most `max_shrink` of the extent, and the bottom rises to the low quantile of all the box's points (the
+  road under a box reaching below it) less pad_m, by at most `floor_clearance_m`: a box's floor band is where its
+  road lies, and an object whose lower part few returns saw (a truck behind parked cars) keeps it.
 Both are symmetric about the box centre in x and y, so an object seen from one side keeps its hidden half, and a
 centre off by d keeps d more on each side rather than cutting the object. Points within `floor_clearance_m` of the
 box's bottom (of the ground under it, for a shrink) are the ground, not the object, for every extent but the
