@@ -4,7 +4,8 @@ lattice for `box_fill_categories`, else its carved solid, else its surface, else
 background inside current boxes is removed; surfaces are voxelized exactly (no holes where triangles exceed a
 voxel) and objects filled inside their surface (nuplan_occ.voxel.compose). Gives instance ids (stable per
 log) and per-voxel flow. With `unboxed_movers`, the frame's own points that the aggregate removed as dynamic
-are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers).
+are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers). With `clear_ego_box`, the voxels
+inside the ego vehicle's own box, above the ground layer, end empty (nuplan_occ.voxel.compose.clear_ego_box).
 
 Inputs: `scene`, `registration`, `object_boxes`, `background_surface`, `scene_frame`, `objects`,
 `object_surfaces`, `object_solids`, `frame_movers`; prepared once per scene: `background_tiles` (the
@@ -19,10 +20,11 @@ from dataclasses import dataclass
 
 from nuplan_occ.geometry import invert_transform, transform_points
 from nuplan_occ.grid import DEFAULT_GRID
+from nuplan_occ.io.types import PACIFICA
 from nuplan_occ.labels import BOX_CATEGORIES, LABELS
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.voxel.compose import compose_frame
+from nuplan_occ.voxel.compose import clear_ego_box, compose_frame
 from nuplan_occ.voxel.movers import mover_voxels, neighbour_movers, paint_empty, recurring_points
 from nuplan_occ.voxel.placement import placed_objects
 from nuplan_occ.voxel.surface_tiles import build_surface_tiles
@@ -67,6 +69,8 @@ class VoxelizeParams:
                                         "tell its motion", unit="m", low=0.0, low_open=True)
     mover_classes: tuple[str, ...] = param(("vehicle", "bicycle"), "classes the unboxed-mover rule may give; a cluster it "
                                            "would give another is other", choices=("vehicle", "bicycle"))
+    clear_ego_box: bool = param(True, "voxels inside the ego vehicle's box (nuPlan Pacifica) above the ground layer are "
+                                "empty")
     mover_bicycle_ground_fill_m: float = param(0.5, "a bicycle's columns whose lowest voxel is at most this high "
                                                "reach down to the ground (0: none)", unit="m", low=0.0)
 
@@ -111,6 +115,8 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                               bicycle_max_width_m=params.mover_bicycle_max_width_m,
                               motion_reach_m=params.mover_motion_reach_m)
         grids.mover_voxels = paint_empty(grids, movers)
+    if params.clear_ego_box:
+        grids.ego_cleared = clear_ego_box(grids, *PACIFICA.box_center_and_size())
     return {"grids": grids}
 
 

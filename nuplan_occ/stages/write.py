@@ -68,6 +68,7 @@ def run(inputs: dict, frame: dict, params: WriteParams) -> dict:
     columns["qa_occupied_voxels"] = int(np.count_nonzero(semantics))
     columns["qa_free_space_cleared"] = int(frame["free_cleared"])
     columns["qa_unboxed_mover_voxels"] = int(grids.mover_voxels)
+    columns["qa_ego_box_cleared"] = int(grids.ego_cleared)
     columns.update(box_label_columns(inputs["object_boxes"][position], inputs["object_points"][position],
                                      scene.instance_ids, semantics, grids.instance))
     if "mask_lidar" in arrays:

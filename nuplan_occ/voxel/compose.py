@@ -89,6 +89,7 @@ class FrameGrids:
     background/empty); flow float16 (X, Y, Z, 3) m/s; occupied_background bool (X, Y, Z): background
     voxels kept (not overwritten by objects); ground_height float (X, Y) metres (NaN unknown);
     mover_voxels: voxels painted for unboxed movers (nuplan_occ.voxel.movers), 0 when none were;
+    ego_cleared: occupied voxels emptied inside the ego vehicle's box (`clear_ego_box`), 0 when none were;
     object_points bool (X, Y, Z): voxels holding an own point of a placed object (`PlacedObject.own_points`)."""
 
     semantics: np.ndarray
@@ -97,6 +98,7 @@ class FrameGrids:
     occupied_background: np.ndarray
     ground_height: np.ndarray | None = None
     mover_voxels: int = 0
+    ego_cleared: int = 0
     object_points: np.ndarray | None = None
 
 
@@ -119,6 +121,25 @@ def zero_emptied_objects(grids: FrameGrids, semantics: np.ndarray) -> None:
         raise VoxelizeError("zero_emptied_objects: the instance and flow grids must be C-contiguous (set in place)")
     flow_bits = grids.flow.reshape(-1, 3).view(np.dtype(f"u{grids.flow.itemsize}"))  # 0 bits are +0.0 (numba has no float16)
     _zero_emptied(grids.instance.reshape(-1), flow_bits, semantics.reshape(-1))
+
+
+def clear_ego_box(grids: FrameGrids, center: np.ndarray, size: np.ndarray, grid: GridSpec = DEFAULT_GRID) -> int:
+    """Empty, in place, the voxels of `grids` (semantics, instance, flow, occupied_background) whose centre lies
+    inside the ego vehicle's box (center (3,) m in the EGO frame, size [length, width, height] m, yaw 0) and above
+    the column's ground layer (the layer holding grids.ground_height; every such voxel where that is unknown):
+    the ego occupies that space at its own frame, so nothing else can. The ground layer stays (the road under
+    the ego). Returns how many occupied voxels were emptied."""
+    idx = box_voxel_indices(center, 0.0, size, grid)
+    if grids.ground_height is not None:
+        layer = ground_height_index(grids.ground_height, grid)[idx[:, 0], idx[:, 1]]
+        idx = idx[idx[:, 2] > layer]
+    i, j, k = idx.T
+    emptied = int(np.count_nonzero(grids.semantics[i, j, k]))
+    grids.semantics[i, j, k] = 0
+    grids.instance[i, j, k] = 0
+    grids.flow[i, j, k] = 0
+    grids.occupied_background[i, j, k] = False
+    return emptied
 
 
 def crowded_or_anchored(points_ego: np.ndarray, anchors: np.ndarray | None, min_count: int,

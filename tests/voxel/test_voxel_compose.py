@@ -7,9 +7,10 @@ import trimesh
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import OTHER, ROAD, TRAFFIC_CONE, VEHICLE
 from nuplan_occ.voxel.compose import (
-    FrameGrids, PlacedObject, compose_frame, crowded_or_anchored, object_voxel_indices, zero_emptied_objects,
+    FrameGrids, PlacedObject, clear_ego_box, compose_frame, crowded_or_anchored, object_voxel_indices,
+    zero_emptied_objects,
 )
-from nuplan_occ.voxel.voxelize import VoxelizeError
+from nuplan_occ.voxel.voxelize import VoxelizeError, in_box
 
 
 GRID = GridSpec(x_min=-10, x_max=10, y_min=-10, y_max=10, z_min=-3, z_max=5, voxel_size=0.25)
@@ -148,3 +149,31 @@ def test_emptied_object_voxels_lose_their_instance_id_and_flow_and_the_rest_keep
     assert np.array_equal(grids.flow, np.where(emptied[..., None], np.float16(0), flow))
     with pytest.raises(VoxelizeError, match="C-contiguous"):
         zero_emptied_objects(FrameGrids(semantics, instance.T.copy().T, flow, np.zeros(shape, bool)), semantics)
+
+
+def test_the_ego_box_ends_empty_above_the_ground_layer_and_nothing_outside_it_changes():
+    ground_v = np.array([[-12, -12, GROUND_Z], [12, -12, GROUND_Z], [12, 12, GROUND_Z], [-12, 12, GROUND_Z]])
+    bump_v, bump_f = box_mesh(np.array([0.0, -0.5, -1.4]), np.array([1.0, 0.5, -0.9]))  # a bump of the surface
+    vertices = np.concatenate([ground_v, bump_v])
+    faces = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]), bump_f + 4])
+    cone_v, cone_f = box_mesh(np.array([-0.3, -0.3, -0.45]), np.array([0.3, 0.3, 0.45]))
+    cone = PlacedObject(cone_v, cone_f, center=np.array([3.9, 0.0, -0.95]), yaw=0.0, size=np.array([0.6, 0.6, 0.9]),
+                        class_id=TRAFFIC_CONE, instance_id=9, velocity=np.array([1.0, 0.0, 0.0]))
+    grids = compose_frame(vertices, faces, [cone], np.full(GRID.shape[:2], ROAD, np.uint8), GRID)
+    before = {name: getattr(grids, name).copy() for name in ("semantics", "instance", "flow", "occupied_background")}
+    center, size = np.array([1.5, 0.0, -0.5]), np.array([5.0, 2.3, 1.8])  # bottom at -1.4 m: the ground's height
+    inside = in_box(GRID.voxel_centers().reshape(-1, 3), center, 0.0, size).reshape(GRID.shape)
+    inside[:, :, :7] = False  # layer 6 holds the ground
+    assert np.count_nonzero(before["semantics"][inside] == OTHER) > 0  # the bump is there
+    assert np.count_nonzero(before["instance"][inside] == 9) > 0  # and the part of the cone inside the box
+
+    emptied = clear_ego_box(grids, center, size, GRID)
+
+    assert emptied == np.count_nonzero(before["semantics"][inside])
+    assert not grids.semantics[inside].any() and not grids.instance[inside].any()
+    assert not grids.flow[inside].any() and not grids.occupied_background[inside].any()
+    for name, grid in before.items():
+        assert np.array_equal(getattr(grids, name)[~inside], grid[~inside])
+    under = inside.any(axis=2)
+    assert np.all(grids.semantics[:, :, 6][under & (before["instance"][:, :, 6] == 0)] == ROAD)  # the road under the ego
+    assert np.count_nonzero(grids.instance == 9) > 0  # the cone's part beyond the box's front (x > 4.0 m) stays
