@@ -2,7 +2,8 @@
 pose) and each object's geometry placed by its corrected box at that frame (nuplan_occ.voxel.placement: a box
 lattice for `box_fill_categories`, else its carved solid, else its surface, else its raw windowed points);
 background inside current boxes is removed; surfaces are voxelized exactly (no holes where triangles exceed a
-voxel) and objects filled inside their surface (nuplan_occ.voxel.compose). Gives instance ids (stable per
+voxel) and objects filled inside their surface (nuplan_occ.voxel.compose); objects of `ground_contact_categories`
+reach down to the ground under them (nuplan_occ.voxel.ground_contact). Gives instance ids (stable per
 log) and per-voxel flow. With `unboxed_movers`, the frame's own points that the aggregate removed as dynamic
 are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers). With `clear_ego_box`, the voxels
 inside the ego vehicle's own box, above the ground layer, end empty (nuplan_occ.voxel.compose.clear_ego_box).
@@ -25,6 +26,7 @@ from nuplan_occ.labels import BOX_CATEGORIES, LABELS
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.compose import clear_ego_box, compose_frame
+from nuplan_occ.voxel.ground_contact import reach_down_to_ground
 from nuplan_occ.voxel.movers import mover_voxels, neighbour_movers, paint_empty, recurring_points
 from nuplan_occ.voxel.placement import placed_objects
 from nuplan_occ.voxel.surface_tiles import build_surface_tiles
@@ -41,6 +43,11 @@ class VoxelizeParams:
                                       low_open=True)
     ground_layer_categories: tuple[str, ...] = param(("vehicle", "czone_sign"), "categories whose voxels in the "
                                                      "ground layer are ground", choices=BOX_CATEGORIES)
+    ground_contact_categories: tuple[str, ...] = param(("vehicle",), "categories whose objects reach down to the "
+                                                       "ground under them (a car's wheels and underside)",
+                                                       choices=BOX_CATEGORIES)
+    ground_contact_reach_m: float = param(0.5, "the tallest gap between an object and its ground that it fills (0: "
+                                          "none)", unit="m", low=0.0)
     solid_min_cells: int = param(4, "solid cells a voxel must hold to take a sparse solid (or one observed cell)",
                                  low=1)
     sparse_solid_categories: tuple[str, ...] = param(("vehicle",), "categories whose carved solids need "
@@ -99,6 +106,8 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
     grids = compose_frame(
         vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects,
         ground_layer_classes=tuple(LABELS.box_category_to_id[c] for c in params.ground_layer_categories))
+    reach_down_to_ground(grids, tuple(LABELS.box_category_to_id[c] for c in params.ground_contact_categories),
+                         params.ground_contact_reach_m)
     if params.unboxed_movers:
         points = inputs["frame_movers"][position]
         others = neighbour_movers(inputs["frame_movers"], position, params.mover_static_frames)

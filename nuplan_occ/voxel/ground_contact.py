@@ -1,0 +1,45 @@
+"""Objects that stand on the ground reach it: the voxels between a vehicle and the road under it.
+
+A car stands on its wheels, and its body clears the road by 0.1-0.3 m. Rays pass under the body and carve
+that gap out of the car's solid, and its wheels give few returns, so the car's voxels often stop one or two
+layers above the road. In the grid a 0.25 m layer there holds wheels and the body's underside, and is the
+car's. Per column of the ego frame's grid (arrays [x, y, z]): when the lowest voxel of an object of the
+given classes stands over empty voxels whose floor (the highest occupied voxel under it) is ground (its
+centre within `ground_tolerance_m` of the column's ground height), and the gap is at most `reach_m` tall,
+the gap's voxels become the object's (class, instance id, flow). Columns of unknown ground are left alone.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.voxel.compose import FrameGrids
+
+
+def reach_down_to_ground(grids: FrameGrids, class_ids: tuple[int, ...], reach_m: float,
+                         ground_tolerance_m: float = 0.3, grid: GridSpec = DEFAULT_GRID) -> int:
+    """Fill, in place, the gaps under objects of `class_ids` (voxels with an instance id) down to their ground
+    (module doc); grids.ground_height (X, Y) m, ego frame, NaN unknown. reach_m: the tallest gap filled (m; 0:
+    none). Returns how many voxels were filled."""
+    layers = int(np.floor(reach_m / grid.voxel_size + 1e-9))
+    if not class_ids or layers < 1 or grids.ground_height is None:
+        return 0
+    semantics, instance, flow = grids.semantics, grids.instance, grids.flow
+    obj = np.isin(semantics, np.asarray(class_ids, np.uint8)) & (instance > 0)
+    has = obj.any(axis=2)
+    low = np.argmax(obj, axis=2)
+    k = np.arange(grid.shape[2])
+    floor = np.where((semantics > 0) & (k < low[..., None]), k, -1).max(axis=2)
+    floor_z = grid.z_min + (floor + 0.5) * grid.voxel_size
+    with np.errstate(invalid="ignore"):
+        on_ground = (floor >= 0) & (np.abs(floor_z - grids.ground_height) <= ground_tolerance_m + 1e-9)
+    gap = low - floor - 1
+    columns = has & on_ground & (gap >= 1) & (gap <= layers)
+    fill = columns[..., None] & (k > floor[..., None]) & (k < low[..., None])
+    i, j, z = np.nonzero(fill)
+    source = low[i, j]
+    semantics[i, j, z] = semantics[i, j, source]
+    instance[i, j, z] = instance[i, j, source]
+    flow[i, j, z] = flow[i, j, source]
+    return int(len(i))
