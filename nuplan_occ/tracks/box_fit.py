@@ -34,7 +34,7 @@ class BoxFitParams:
     returns around a box do not widen it; shrink_quantile: the same for a shrink, so that they do not hold it
     open; min_points: a track with fewer object points over its sweeps keeps its box."""
 
-    grow_margin_m: float = 0.3
+    grow_margin_m: float = 0.15
     grow_categories: tuple[str, ...] = ("pedestrian",)
     shrink_categories: tuple[str, ...] = ("vehicle",)
     max_shrink: float = 0.25
