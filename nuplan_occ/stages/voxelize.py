@@ -2,10 +2,11 @@
 pose) and each object's geometry placed by its corrected box at that frame (nuplan_occ.voxel.placement: a box
 lattice for `box_fill_categories`, else its carved solid, else its surface, else its raw windowed points);
 background inside current boxes is removed; surfaces are voxelized exactly (no holes where triangles exceed a
-voxel) and objects filled inside their surface (nuplan_occ.voxel.compose); objects of `ground_contact_categories`
-reach down to the ground under them (nuplan_occ.voxel.ground_contact). Gives instance ids (stable per
+voxel) and objects filled inside their surface (nuplan_occ.voxel.compose). Gives instance ids (stable per
 log) and per-voxel flow. With `unboxed_movers`, the frame's own points that the aggregate removed as dynamic
-are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers). With `clear_ego_box`, the voxels
+are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers). Then the voxels of
+`ground_contact_categories`, boxed or not, reach down to the ground under them (nuplan_occ.voxel.ground_contact).
+With `clear_ego_box`, the voxels
 inside the ego vehicle's own box, above the ground layer, end empty (nuplan_occ.voxel.compose.clear_ego_box).
 
 Inputs: `scene`, `registration`, `object_boxes`, `background_surface`, `scene_frame`, `objects`,
@@ -106,8 +107,6 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
     grids = compose_frame(
         vertices, faces, objects, None, DEFAULT_GRID, fill_objects=params.fill_objects,
         ground_layer_classes=tuple(LABELS.box_category_to_id[c] for c in params.ground_layer_categories))
-    reach_down_to_ground(grids, tuple(LABELS.box_category_to_id[c] for c in params.ground_contact_categories),
-                         params.ground_contact_reach_m)
     if params.unboxed_movers:
         points = inputs["frame_movers"][position]
         others = neighbour_movers(inputs["frame_movers"], position, params.mover_static_frames)
@@ -124,6 +123,8 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                               bicycle_max_width_m=params.mover_bicycle_max_width_m,
                               motion_reach_m=params.mover_motion_reach_m)
         grids.mover_voxels = paint_empty(grids, movers)
+    reach_down_to_ground(grids, tuple(LABELS.box_category_to_id[c] for c in params.ground_contact_categories),
+                         params.ground_contact_reach_m)
     if params.clear_ego_box:
         grids.ego_cleared = clear_ego_box(grids, *PACIFICA.box_center_and_size())
     return {"grids": grids}

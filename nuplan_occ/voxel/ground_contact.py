@@ -3,10 +3,11 @@
 A car stands on its wheels, and its body clears the road by 0.1-0.3 m. Rays pass under the body and carve
 that gap out of the car's solid, and its wheels give few returns, so the car's voxels often stop one or two
 layers above the road. In the grid a 0.25 m layer there holds wheels and the body's underside, and is the
-car's. Per column of the ego frame's grid (arrays [x, y, z]): when the lowest voxel of an object of the
-given classes stands over empty voxels whose floor (the highest occupied voxel under it) is ground (its
-centre within `ground_tolerance_m` of the column's ground height), and the gap is at most `reach_m` tall,
-the gap's voxels become the object's (class, instance id, flow). Columns of unknown ground are left alone.
+car's. Per column of the ego frame's grid (arrays [x, y, z]): when the lowest voxel of the given classes (a
+boxed object's, or an unboxed mover's: nuplan_occ.voxel.movers) stands over empty voxels whose floor (the highest
+occupied voxel under it) is ground (its centre within `ground_tolerance_m` of the column's ground height), and the
+gap is at most `reach_m` tall, the gap's voxels become that voxel's (class, instance id, flow). Columns of
+unknown ground are left alone.
 """
 
 from __future__ import annotations
@@ -19,14 +20,14 @@ from nuplan_occ.voxel.compose import FrameGrids
 
 def reach_down_to_ground(grids: FrameGrids, class_ids: tuple[int, ...], reach_m: float,
                          ground_tolerance_m: float = 0.3, grid: GridSpec = DEFAULT_GRID) -> int:
-    """Fill, in place, the gaps under objects of `class_ids` (voxels with an instance id) down to their ground
-    (module doc); grids.ground_height (X, Y) m, ego frame, NaN unknown. reach_m: the tallest gap filled (m; 0:
-    none). Returns how many voxels were filled."""
+    """Fill, in place, the gaps under the voxels of `class_ids` down to their ground (module doc);
+    grids.ground_height (X, Y) m, ego frame, NaN unknown. reach_m: the tallest gap filled (m; 0: none). Returns
+    how many voxels were filled."""
     layers = int(np.floor(reach_m / grid.voxel_size + 1e-9))
     if not class_ids or layers < 1 or grids.ground_height is None:
         return 0
     semantics, instance, flow = grids.semantics, grids.instance, grids.flow
-    obj = np.isin(semantics, np.asarray(class_ids, np.uint8)) & (instance > 0)
+    obj = np.isin(semantics, np.asarray(class_ids, np.uint8))
     has = obj.any(axis=2)
     low = np.argmax(obj, axis=2)
     k = np.arange(grid.shape[2])

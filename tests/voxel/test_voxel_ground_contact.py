@@ -1,4 +1,4 @@
-"""Cars whose voxels stop above the road reach down to it; a gap taller than the reach, a class left out and a
+"""Cars whose voxels stop above the road reach down to it, boxed or not; a gap taller than the reach, a class left out and a
 column of unknown ground stay as they are."""
 
 import numpy as np
@@ -84,3 +84,12 @@ def test_a_reach_of_a_gap_fills_it_and_the_classes_choose_who_reaches():
     assert np.all(grids.instance[:, :, 7:10][footprint3] == 3)  # layers 7, 8, 9 under car 3
     assert not grids.semantics[:, :, 7][footprint4].any()  # the pedestrian's class was not given
     assert filled == 3 * footprint3.sum() + (lowest_layer(grids, 2) >= 0).sum()
+
+
+def test_an_unboxed_mover_reaches_down_too_without_an_instance():
+    grids = scene()
+    columns = lowest_layer(grids, 2) == 8
+    grids.instance[grids.instance == 2] = 0  # car 2 painted as a mover: class only
+    grids.flow[:] = 0
+    assert reach_down_to_ground(grids, (VEHICLE,), reach_m=0.5, grid=GRID) == columns.sum()
+    assert np.all(grids.semantics[:, :, 7][columns] == VEHICLE) and not grids.instance[:, :, 7][columns].any()
