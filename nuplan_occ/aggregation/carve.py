@@ -10,7 +10,8 @@ is closed by construction, so a voxelizer fills it solid where the surface itsel
 The hull keeps every cell no ray reached, and nothing reaches the air above an object where the sky behind it
 gives no return (above a truck's bed, beside its cab). `under_top_envelope` removes those cells: an object is
 taken to have no overhang, so a cell higher than the highest point of the columns around it is air; a column with
-no point of the object's body (only ground returns, or none) is unknown and keeps its cells.
+no point of the object's body (only ground returns, or none) around it may take the top of its cross-section
+(the seen columns across the box's width at its place along the length), else it is unknown and keeps its cells.
 """
 
 from __future__ import annotations
@@ -193,11 +194,14 @@ def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np
 
 
 def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float,
-                       reach_m: float, pad_m: float, floor_clearance_m: float) -> np.ndarray:
+                       reach_m: float, pad_m: float, floor_clearance_m: float, across_width: bool = False) -> np.ndarray:
     """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size,
     resolution)`) whose bottom lies at most pad_m above the highest of the object's body points (points_box
     (N, 3) inside the box and more than floor_clearance_m above its bottom) in the columns within reach_m (x and
-    y) of theirs; cells of columns with no such point within reach are kept (True). Metres."""
+    y) of theirs. A column with no such point within reach takes, with `across_width`, the highest point of its
+    cross-section (every column across the box's width within reach_m along its length: a vehicle is about as
+    tall across its width, so the unseen top of a hood or a bus's far end ends where its seen sides do); cells of
+    columns still without one are kept (True). Metres."""
     size = np.asarray(size, np.float64)
     counts, edge = lattice_shape(size, resolution)
     points = np.asarray(points_box, np.float64).reshape(-1, 3)
@@ -206,7 +210,12 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
     top = np.full(int(counts[0] * counts[1]), -np.inf)
     np.maximum.at(top, flat // counts[2], points[inside, 2])
     reach = int(np.ceil(reach_m / min(edge[0], edge[1]) - 1e-9))
-    top = ndimage.maximum_filter(top.reshape(counts[0], counts[1]), size=2 * reach + 1, mode="constant", cval=-np.inf)
+    top = top.reshape(counts[0], counts[1])
+    near = ndimage.maximum_filter(top, size=2 * reach + 1, mode="constant", cval=-np.inf)
+    if across_width:
+        section = ndimage.maximum_filter1d(top.max(axis=1), size=2 * reach + 1, mode="constant", cval=-np.inf)
+        near = np.where(np.isneginf(near), section[:, None], near)
+    top = near
     cells = np.asarray(cells_box, np.float64).reshape(-1, 3)
     column = np.floor((cells[:, :2] + size[:2] / 2) / edge[:2]).astype(np.int64)
     column = np.clip(column, 0, counts[:2] - 1)
@@ -216,11 +225,12 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
 
 @dataclass(frozen=True)
 class TopEnvelope:
-    """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m."""
+    """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m, across_width."""
 
     reach_m: float
     pad_m: float
     floor_clearance_m: float
+    across_width: bool = False
 
 
 def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float,
@@ -234,7 +244,7 @@ def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: 
     cells = carve_object_solid(points_box, origins_box, size, resolution=resolution, through=through)
     if envelope is not None:
         cells = cells[under_top_envelope(cells, points_box, size, resolution, envelope.reach_m, envelope.pad_m,
-                                         envelope.floor_clearance_m)]
+                                         envelope.floor_clearance_m, envelope.across_width)]
     observed = cells_holding_points(cells, points_box, size, resolution)
     if corners:
         return SolidSamples(cell_corner_points(cells, size, resolution), np.repeat(observed, 8))

@@ -57,6 +57,8 @@ class ReconstructParams:
     envelope_pad_m: float = param(0.1, "a solid cell may start this far above that point", unit="m", low=0.0)
     envelope_floor_m: float = param(0.3, "points this close above the box's bottom are ground, no top", unit="m",
                                     low=0.0)
+    envelope_across_width: bool = param(True, "a column with no point near takes the highest point across the box's "
+                                        "width at its place along the length")
 
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
@@ -69,7 +71,8 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
         vertices, faces = ground_fill_mesh(background.points, max_edge_m=params.ground_fill_max_edge_m)
         background_surface = background_surface.with_triangles(vertices, faces, ground_fill_faces=len(faces))
     object_surfaces, object_solids = {}, {}
-    envelope = TopEnvelope(params.envelope_reach_m, params.envelope_pad_m, params.envelope_floor_m)
+    envelope = TopEnvelope(params.envelope_reach_m, params.envelope_pad_m, params.envelope_floor_m,
+                           params.envelope_across_width)
     for track, aggregate in inputs["objects"].items():
         if not aggregate.rigid:
             continue

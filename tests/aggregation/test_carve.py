@@ -198,3 +198,30 @@ def test_the_top_envelope_removes_the_unseen_air_above_a_truck_bed_and_keeps_unk
     assert keep[bed & (cells[:, 2] < -0.1)].all()
     assert keep[(cells[:, 0] < -0.5) & (cells[:, 1] > 0.5)].all()  # the cab, up to its top
     assert keep[(np.abs(cells[:, 1] + 0.95) < 0.05) & (cells[:, 0] < -0.5)].all()  # ground returns only: kept
+
+
+def test_an_unseen_hood_top_ends_where_its_seen_side_does_across_the_width():
+    """A 4.5 x 1.8 x 1.5 m car box: its cabin (|x| < 1) seen on the left side up to the roof (0.75), its hood
+    (x > 1.2) seen on the left side up to the belt (0.05), the hood's top and the trunk (x < -1.5) never seen.
+    The hood's inside columns, beyond the envelope's reach of the side, take the side's top across the width;
+    the unseen trunk keeps its box, and without across_width the hood keeps it too."""
+    from nuplan_occ.aggregation.carve import lattice_shape, under_top_envelope
+
+    size = np.array([4.5, 1.8, 1.5])
+    rng = np.random.default_rng(1)
+    cabin = np.column_stack([rng.uniform(-1, 1, 3000), np.full(3000, 0.85), rng.uniform(-0.4, 0.75, 3000)])
+    hood = np.column_stack([rng.uniform(1.2, 2.25, 2000), np.full(2000, 0.85), rng.uniform(-0.4, 0.05, 2000)])
+    points = np.vstack([cabin, hood])
+    counts, edge = lattice_shape(size, 0.1)
+    ijk = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), axis=-1).reshape(-1, 3)
+    cells = (ijk + 0.5) * edge - size / 2
+    across = under_top_envelope(cells, points, size, 0.1, reach_m=0.3, pad_m=0.1, floor_clearance_m=0.3,
+                                across_width=True)
+    column_only = under_top_envelope(cells, points, size, 0.1, reach_m=0.3, pad_m=0.1, floor_clearance_m=0.3)
+    inside_hood = (cells[:, 0] > 1.6) & (cells[:, 1] < 0.4)
+    above_belt = cells[:, 2] - edge[2] / 2 > hood[:, 2].max() + 0.1
+    assert not across[inside_hood & above_belt].any() and across[inside_hood & ~above_belt].all()
+    assert column_only[inside_hood].all()
+    trunk = cells[:, 0] < -1.9
+    assert across[trunk].all() and column_only[trunk].all()
+    assert across[(np.abs(cells[:, 0]) < 0.6)].all()  # the cabin's whole cross-section, up to its roof
