@@ -27,19 +27,20 @@ def reach_down_to_ground(grids: FrameGrids, class_ids: tuple[int, ...], reach_m:
     if not class_ids or layers < 1 or grids.ground_height is None:
         return 0
     semantics, instance, flow = grids.semantics, grids.instance, grids.flow
-    obj = np.isin(semantics, np.asarray(class_ids, np.uint8))
-    has = obj.any(axis=2)
-    low = np.argmax(obj, axis=2)
+    ci, cj = np.nonzero(np.isin(semantics, np.asarray(class_ids, np.uint8)).any(axis=2))  # the columns holding one
+    column = semantics[ci, cj]  # (C, Z)
+    obj = np.isin(column, np.asarray(class_ids, np.uint8))
+    low = np.argmax(obj, axis=1)
     k = np.arange(grid.shape[2])
-    floor = np.where((semantics > 0) & (k < low[..., None]), k, -1).max(axis=2)
+    floor = np.where((column > 0) & (k < low[:, None]), k, -1).max(axis=1, initial=-1)
     floor_z = grid.z_min + (floor + 0.5) * grid.voxel_size
     with np.errstate(invalid="ignore"):
-        on_ground = (floor >= 0) & (np.abs(floor_z - grids.ground_height) <= ground_tolerance_m + 1e-9)
+        on_ground = (floor >= 0) & (np.abs(floor_z - grids.ground_height[ci, cj]) <= ground_tolerance_m + 1e-9)
     gap = low - floor - 1
-    columns = has & on_ground & (gap >= 1) & (gap <= layers)
-    fill = columns[..., None] & (k > floor[..., None]) & (k < low[..., None])
-    i, j, z = np.nonzero(fill)
-    source = low[i, j]
+    keep = on_ground & (gap >= 1) & (gap <= layers)
+    ci, cj, low, floor, gap = ci[keep], cj[keep], low[keep], floor[keep], gap[keep]
+    i, j, source = np.repeat(ci, gap), np.repeat(cj, gap), np.repeat(low, gap)
+    z = np.repeat(floor + 1, gap) + (np.arange(len(i)) - np.repeat(np.cumsum(gap) - gap, gap))
     semantics[i, j, z] = semantics[i, j, source]
     instance[i, j, z] = instance[i, j, source]
     flow[i, j, z] = flow[i, j, source]
