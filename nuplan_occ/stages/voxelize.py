@@ -6,8 +6,8 @@ voxel) and objects filled inside their surface (nuplan_occ.voxel.compose). Gives
 log) and per-voxel flow. With `unboxed_movers`, the frame's own points that the aggregate removed as dynamic
 are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers). Then the voxels of
 `ground_contact_categories`, boxed or not, reach down to the ground under them (nuplan_occ.voxel.ground_contact).
-With `clear_ego_box`, the voxels
-inside the ego vehicle's own box, above the ground layer, end empty (nuplan_occ.voxel.compose.clear_ego_box).
+With `clear_ego_box`, the voxels inside the ego vehicle's own box, above the ground layer, end empty
+(nuplan_occ.voxel.compose.clear_ego_box).
 
 Inputs: `scene`, `registration`, `object_boxes`, `background_surface`, `scene_frame`, `objects`,
 `object_surfaces`, `object_solids`, `frame_movers`; prepared once per scene: `background_tiles` (the
@@ -77,10 +77,10 @@ class VoxelizeParams:
                                         "tell its motion", unit="m", low=0.0, low_open=True)
     mover_classes: tuple[str, ...] = param(("vehicle", "bicycle"), "classes the unboxed-mover rule may give; a cluster it "
                                            "would give another is other", choices=("vehicle", "bicycle"))
-    clear_ego_box: bool = param(True, "voxels inside the ego vehicle's box (nuPlan Pacifica) above the ground layer are "
-                                "empty")
     mover_bicycle_ground_fill_m: float = param(0.5, "a bicycle's columns whose lowest voxel is at most this high "
                                                "reach down to the ground (0: none)", unit="m", low=0.0)
+    clear_ego_box: bool = param(True, "voxels inside the ego vehicle's box (nuPlan Pacifica) above the ground layer are "
+                                "empty")
 
 
 def prepare(inputs: dict, params: VoxelizeParams) -> dict:

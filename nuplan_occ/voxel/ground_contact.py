@@ -27,9 +27,9 @@ def reach_down_to_ground(grids: FrameGrids, class_ids: tuple[int, ...], reach_m:
     if not class_ids or layers < 1 or grids.ground_height is None:
         return 0
     semantics, instance, flow = grids.semantics, grids.instance, grids.flow
-    ci, cj = np.nonzero(np.isin(semantics, np.asarray(class_ids, np.uint8)).any(axis=2))  # the columns holding one
-    column = semantics[ci, cj]  # (C, Z)
-    obj = np.isin(column, np.asarray(class_ids, np.uint8))
+    of_class = np.isin(semantics, np.asarray(class_ids, np.uint8))
+    ci, cj = np.nonzero(of_class.any(axis=2))  # the columns holding one
+    column, obj = semantics[ci, cj], of_class[ci, cj]  # (C, Z)
     low = np.argmax(obj, axis=1)
     k = np.arange(grid.shape[2])
     floor = np.where((column > 0) & (k < low[:, None]), k, -1).max(axis=1, initial=-1)
