@@ -60,6 +60,8 @@ def _build(points: np.ndarray, leaf_size: int):
         if e - s <= leaf_size or hi[node, dim] == lo[node, dim]:
             continue
         mid = 0.5 * (lo[node, dim] + hi[node, dim])
+        if mid <= lo[node, dim]:  # lo and hi one float apart: the midpoint rounds onto lo, split at hi instead
+            mid = hi[node, dim]
         i, j = s, e - 1
         while i <= j:  # points below mid to the front; both sides keep at least one point
             if points[order[i], dim] < mid:

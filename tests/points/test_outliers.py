@@ -98,7 +98,9 @@ def test_knn_distances_equal_kd_tree_queries():
     duplicates = np.repeat(rng.uniform(-1, 1, (50, 3)), 4, axis=0)  # ties and zero distances
     line = np.c_[np.linspace(0, 10, 300), np.zeros(300), np.zeros(300)]  # a degenerate (flat) box
     pile = np.repeat([[3.0, -2.0, 0.1]], 100, axis=0)  # one unsplittable leaf of more points than LEAF_SIZE_CAP
-    points = np.vstack([ring, duplicates, line, pile])
+    twins = np.repeat([[5.5, 1.0, 0.0], [np.nextafter(5.5, 6.0), 1.0, 0.0]], 40, axis=0)  # x one float apart: the
+    # midpoint of the node holding only them rounds onto its low end
+    points = np.vstack([ring, duplicates, line, pile, twins])
     for k in (1, 2, 20):
         np.testing.assert_array_equal(knn_distances(points, k), cKDTree(points).query(points, k=k)[0].reshape(len(points), k))
     np.testing.assert_array_equal(knn_distances(points[:7], 7), cKDTree(points[:7]).query(points[:7], k=7)[0])
