@@ -4,7 +4,9 @@ lattice for `box_fill_categories`, else its carved solid, else its surface, else
 background inside current boxes is removed; surfaces are voxelized exactly (no holes where triangles exceed a
 voxel) and objects filled inside their surface (nuplan_occ.voxel.compose). Gives instance ids (stable per
 log) and per-voxel flow. With `unboxed_movers`, the frame's own points that the aggregate removed as dynamic
-are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers). Then the voxels of
+are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers), and the clusters of
+`mover_gather_categories` gather the flagged points of the `mover_gather_frames` output frames before and after,
+moved by their own motion, and are filled as the solid those outline (nuplan_occ.voxel.mover_solids). Then the voxels of
 `ground_contact_categories`, boxed or not, reach down to the ground under them (nuplan_occ.voxel.ground_contact).
 With `clear_ego_box`, the voxels inside the ego vehicle's own box, above the ground layer, end empty
 (nuplan_occ.voxel.compose.clear_ego_box).
@@ -28,7 +30,9 @@ from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.compose import clear_ego_box, compose_frame
 from nuplan_occ.voxel.ground_contact import reach_down_to_ground
-from nuplan_occ.voxel.movers import mover_voxels, neighbour_movers, paint_empty, recurring_points
+from nuplan_occ.voxel.mover_gathering import GatherSettings
+from nuplan_occ.voxel.mover_solids import gathered_solids
+from nuplan_occ.voxel.movers import mover_voxels, movers_around, neighbour_movers, paint_empty, recurring_points
 from nuplan_occ.voxel.placement import placed_objects
 from nuplan_occ.voxel.surface_tiles import build_surface_tiles
 
@@ -77,6 +81,17 @@ class VoxelizeParams:
                                         "tell its motion", unit="m", low=0.0, low_open=True)
     mover_classes: tuple[str, ...] = param(("vehicle", "bicycle"), "classes the unboxed-mover rule may give; a cluster it "
                                            "would give another is other", choices=("vehicle", "bicycle"))
+    mover_gather_categories: tuple[str, ...] = param(("vehicle",), "unboxed-mover classes that gather the frames "
+                                                     "around them and are filled as solids",
+                                                     choices=("vehicle", "bicycle"))
+    mover_gather_frames: int = param(5, "output frames before and after that an unboxed mover gathers (0: none)",
+                                     low=0)
+    mover_gather_step_m: float = param(2.5, "the farthest an unboxed mover moves from one output frame to the "
+                                       "next", unit="m", low=0.0, low_open=True)
+    mover_gather_min_overlap: float = param(0.3, "share of the smaller occupancy that must overlay to gather a "
+                                            "frame", low=0.0, high=1.0)
+    mover_solid_reach_m: float = param(0.5, "a gathered mover's column without points reaches up to the lowest top "
+                                       "of the columns within this distance", unit="m", low=0.0)
     mover_bicycle_ground_fill_m: float = param(0.5, "a bicycle's columns whose lowest voxel is at most this high "
                                                "reach down to the ground (0: none)", unit="m", low=0.0)
     clear_ego_box: bool = param(True, "voxels inside the ego vehicle's box (nuPlan Pacifica) above the ground layer are "
@@ -123,6 +138,15 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                               bicycle_max_width_m=params.mover_bicycle_max_width_m,
                               motion_reach_m=params.mover_motion_reach_m)
         grids.mover_voxels = paint_empty(grids, movers)
+        if params.mover_gather_categories:
+            around = {step: transform_points(T_ego_from_scene, p) for step, p in
+                      movers_around(inputs["frame_movers"], position, params.mover_gather_frames).items()}
+            solids = gathered_solids(
+                movers, transform_points(T_ego_from_scene, points), around, grids.ground_height,
+                tuple(LABELS.box_category_to_id[c] for c in params.mover_gather_categories),
+                GatherSettings(step_m=params.mover_gather_step_m, min_overlap=params.mover_gather_min_overlap),
+                params.mover_solid_reach_m, DEFAULT_GRID)
+            grids.mover_voxels += paint_empty(grids, solids)
     reach_down_to_ground(grids, tuple(LABELS.box_category_to_id[c] for c in params.ground_contact_categories),
                          params.ground_contact_reach_m)
     if params.clear_ego_box:

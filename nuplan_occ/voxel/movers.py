@@ -215,6 +215,16 @@ def neighbour_movers(frame_movers: dict[int, np.ndarray], position: int, frames:
     return [frame_movers[positions[n - frames]], frame_movers[positions[n + frames]]]
 
 
+def movers_around(frame_movers: dict[int, np.ndarray], position: int, frames: int) -> dict[int, np.ndarray]:
+    """Signed output frame step (-frames..frames, 0 left out) -> the flagged points (scene frame) of that output
+    frame around the one at `position` (frame_movers: output position -> (N, 3) scene-frame points); steps past
+    the scene's ends are left out."""
+    positions = sorted(frame_movers)
+    n = positions.index(position)
+    return {step: frame_movers[positions[n + step]] for step in range(-frames, frames + 1)
+            if step and 0 <= n + step < len(positions)}
+
+
 def paint_empty(grids: FrameGrids, movers: MoverVoxels) -> int:
     """Give the empty voxels among `movers`, and their over_ground voxels that hold background, their class
     (instance and flow stay 0; a painted voxel is no longer background); returns how many were painted."""

@@ -1,6 +1,7 @@
 """A moving vehicle the log has no box for (the synthetic world leaves the mover nearest the ego route
 unannotated, as a missed detection) is occupied in each frame where it is, labeled vehicle, and nowhere
-else: its frame's own points that the aggregate removed as dynamic are voxelized in that frame only."""
+else: its frame's own points that the aggregate removed as dynamic are voxelized in that frame, with the points
+of the frames around gathered onto it by its motion and filled as the solid they outline."""
 
 from __future__ import annotations
 
@@ -31,16 +32,20 @@ def test_unboxed_mover_is_occupied_where_it_is_and_nowhere_else(reference_build,
     built, truth = open_dataset(str(reference_build)), open_dataset(str(synthetic_root / "truth"))
     mover = _unboxed_truth_instance(built, truth)
     qa = built.column("qa_unboxed_mover_voxels").to_pylist()
-    painted_total = on_vehicle = frames_with_mover = 0
+    painted_total = on_vehicle = frames_with_mover = observed = covered = 0
     for i in range(len(built)):
         frame = built.get(i, keys=("semantics", "instance"))
         reference = truth[truth.index_of_token(frame["token"])]
         painted = (frame["semantics"] == VEHICLE) & (frame["instance"] == 0)
         painted_total += int(painted.sum())
         on_vehicle += int((painted & (reference["semantics"] == VEHICLE)).sum())
-        if ((reference["instance"] == mover) & reference["mask_lidar"]).sum() >= 150:
+        seen = (reference["instance"] == mover) & reference["mask_lidar"]
+        observed += int(seen.sum())
+        covered += int((seen & (frame["semantics"] == VEHICLE)).sum())
+        if seen.sum() >= 150:
             frames_with_mover += 1
             assert qa[i] > 0, f"frame {i}: the mover's points gave no voxel"
     assert frames_with_mover >= 5
     assert painted_total >= 20 * frames_with_mover
     assert on_vehicle / painted_total >= 0.9  # painted where a vehicle is now: no trail
+    assert covered / observed >= 0.2  # its own points alone cover about a seventh of its observed voxels
