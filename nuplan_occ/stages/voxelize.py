@@ -62,6 +62,8 @@ class VoxelizeParams:
     mover_min_voxels: int = param(2, "mover clusters with fewer voxels are not painted", low=1)
     mover_vehicle_extent_m: float = param(2.5, "a mover cluster at least this long (x or y) is a vehicle", unit="m",
                                           low=0.0)
+    mover_vehicle_max_height_m: float = param(4.5, "a mover cluster whose top stands higher above its ground is "
+                                              "not a vehicle", unit="m", low=0.0)
     mover_bicycle_extent_m: float = param(1.0, "a shorter moving cluster at least this long is a bicycle", unit="m",
                                           low=0.0)
     mover_static_frames: int = param(5, "output frames before and after whose movers tell static structure",
@@ -136,7 +138,8 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                               bicycle_min_height_m=params.mover_bicycle_min_height_m,
                               neighbours=tuple(transform_points(T_ego_from_scene, o) for o in others) if others else None,
                               bicycle_max_width_m=params.mover_bicycle_max_width_m,
-                              motion_reach_m=params.mover_motion_reach_m)
+                              motion_reach_m=params.mover_motion_reach_m,
+                              vehicle_max_height_m=params.mover_vehicle_max_height_m)
         grids.mover_voxels = paint_empty(grids, movers)
         if params.mover_gather_categories:
             around = {step: transform_points(T_ego_from_scene, p) for step, p in

@@ -10,7 +10,8 @@ the other box categories are static. A cluster is
 - `other` when its lowest voxel is more than `ground_reach_m` above the ground of its column (road users
   stand on the ground; a flagged patch of canopy or facade does not);
 - a vehicle when its footprint spans at least `vehicle_extent_m` along x or y (a car seen side-on, a truck
-  or bus from any side: longer than any bicycle);
+  or bus from any side: longer than any bicycle) and its top stands at most `vehicle_max_height_m` above its
+  ground (no road vehicle is taller; a stretch of facade the dynamic test flagged can be);
 - part of a vehicle when shorter but linked to a vehicle cluster by gaps of at most `fragment_reach_m`
   (through other clusters too: a vehicle's side seen in pieces, where parts stayed in the background);
 - a bicycle from `bicycle_extent_m` (longer than a pedestrian) when it moved, its top stands at least
@@ -67,11 +68,11 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
                  fragment_reach_m: float = 1.0, bicycle_ground_fill_m: float = 0.5,
                  classes: tuple[int, ...] = (VEHICLE, BICYCLE), bicycle_min_height_m: float = 0.0,
                  neighbours: tuple[np.ndarray, np.ndarray] | None = None, bicycle_max_width_m: float = np.inf,
-                 motion_reach_m: float = 4.0) -> MoverVoxels:
+                 motion_reach_m: float = 4.0, vehicle_max_height_m: float = np.inf) -> MoverVoxels:
     """The labeled voxels of a frame's unboxed-mover points (N, 3), ego frame, m (see module doc).
     classes: the class ids the rule may give (of VEHICLE, BICYCLE); a cluster it would give another is `other`.
     bicycle_min_height_m: a bicycle cluster's top must stand at least this high above its ground (its own height
-    where the ground is unknown).
+    where the ground is unknown); vehicle_max_height_m: a vehicle cluster's top at most this high (m).
     neighbours: the flagged points (M, 3), ego frame of this frame, of an earlier and a later frame (None: the
     motion is not read and `bicycle_max_width_m` is not applied). bicycle_max_width_m: the widest a bicycle
     cluster spans across its motion, m. motion_reach_m: horizontal radius around a cluster's centre in which the
@@ -94,7 +95,8 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
         np.bincount(point_cluster, minlength=count), 1)
     extent = span.max(axis=1)
     grounded = _standing(idx, cluster_of, count, grid, ground_height, ground_reach_m)
-    vehicle = grounded & (extent >= vehicle_extent_m)
+    height = _height(idx, cluster_of, count, grid, ground_height)
+    vehicle = grounded & (extent >= vehicle_extent_m) & (height <= vehicle_max_height_m + 1e-9)
     fragment = np.zeros(count, dtype=bool)
     half_reach = int(round(fragment_reach_m / (2 * grid.voxel_size)))
     if half_reach and vehicle.any():  # clusters whose gaps are at most fragment_reach_m form one group
@@ -102,7 +104,7 @@ def mover_voxels(points_ego: np.ndarray, grid: GridSpec = DEFAULT_GRID, min_voxe
         cluster_group = np.zeros(count, dtype=np.int64)
         cluster_group[cluster_of] = groups
         fragment = grounded & np.isin(cluster_group, cluster_group[vehicle])
-    tall = _height(idx, cluster_of, count, grid, ground_height) >= bicycle_min_height_m - 1e-9
+    tall = height >= bicycle_min_height_m - 1e-9
     bicycle = grounded & ~(vehicle | fragment) & (extent >= bicycle_extent_m) & (share < static_fraction) & tall
     if neighbours is not None:
         centres = grid.index_to_center(idx)[:, :2]

@@ -192,3 +192,19 @@ def test_a_moving_cluster_wide_across_its_motion_is_no_bicycle() -> None:
     assert classes(unknown, cyclist) == {OTHER} and classes(unknown, car_back) == {OTHER}
     not_read = mover_voxels(points, DEFAULT_GRID, **common)
     assert classes(not_read, cyclist) == {BICYCLE} and classes(not_read, car_back) == {BICYCLE}
+
+
+def test_a_cluster_taller_than_any_vehicle_is_not_one() -> None:
+    """A 12 m stretch of facade 5 m tall that the dynamic test flagged, beside a 3.5 m truck, both standing on
+    the ground at z = -0.4 m: the truck is a vehicle, the facade is other."""
+    ground = np.full(DEFAULT_GRID.shape[:2], -0.4)
+    ys, zs = np.meshgrid(np.arange(-6.0, 6.0, 0.1), np.arange(-0.3, 4.6, 0.1))
+    facade = np.c_[np.full(ys.size, 30.1), ys.ravel(), zs.ravel()]
+    truck = _surface_points((15.1, 0.1, -0.4 + 1.75), (8.0, 2.5, 3.5))
+    result = mover_voxels(np.vstack([facade, truck]), DEFAULT_GRID, ground_height=ground, vehicle_max_height_m=4.5)
+    centres = DEFAULT_GRID.index_to_center(result.indices)
+    at_facade = centres[:, 0] > 29.0
+    assert at_facade.any() and np.all(result.class_ids[at_facade] == OTHER)
+    assert np.all(result.class_ids[~at_facade] == VEHICLE)
+    unbounded = mover_voxels(np.vstack([facade, truck]), DEFAULT_GRID, ground_height=ground)
+    assert np.all(unbounded.class_ids == VEHICLE)  # without the bound the facade passes for a vehicle
