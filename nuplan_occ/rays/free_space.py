@@ -18,6 +18,7 @@ frames by `nuplan_occ.voxel.frame_lookup` (its arithmetic, not numpy's BLAS).
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from nuplan_occ.geometry import invert_transform
 from nuplan_occ.grid import DEFAULT_GRID, GridSpec, true_indices
@@ -88,6 +89,21 @@ def crossed_objects(semantics: np.ndarray, classes: tuple[int, ...], object_poin
     for class_id in classes:  # one comparison per class: cheaper than a table lookup per voxel
         wanted |= semantics == class_id
     return free_voxels_in_frames(wanted & ~object_points, np.eye(4)[None],
+                                 np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
+
+
+def crossed_far_from_points(candidates: np.ndarray, object_points: np.ndarray, own_free_bits: np.ndarray,
+                            reach_m: float, grid: GridSpec = DEFAULT_GRID) -> np.ndarray:
+    """bool (X, Y, Z): the candidate voxels (bool (X, Y, Z)) that the frame's own rays crossed (FREE bits
+    own_free_bits) and whose column lies farther than reach_m (x-y, centre to centre) from every column holding
+    an object's own point (object_points bool (X, Y, Z)). The end of a box from which no return came, at this
+    frame or in the sweeps around it, while rays passed through it, is empty space the box covers; the voxels
+    a surface partly fills lie near its returns and stay."""
+    radius = int(np.floor(reach_m / grid.voxel_size + 1e-9))
+    offsets = np.arange(-radius, radius + 1)
+    disc = np.hypot(*np.meshgrid(offsets, offsets, indexing="ij")) <= radius + 1e-9
+    near = binary_dilation(object_points.any(axis=2), structure=disc)
+    return free_voxels_in_frames(candidates & ~near[:, :, None], np.eye(4)[None],
                                  np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
 
 

@@ -1,8 +1,9 @@
 """visibility (a frame stage): `mask_lidar` from the frame's own LiDAR rays (voxels traversed = observed free,
 the return's voxel = observed occupied, the rest unknown); free-space consistency: background voxels those
 rays crossed, holding no aggregated point and above the ground, are cleared, and so are voxels of the
-`clear_object_categories` that the frame's own rays crossed without touching the objects' own points
-(nuplan_occ.rays.free_space); then `mask_camera` from the cameras' frusta with occlusion by the frame's
+`clear_object_categories` that the frame's own rays crossed without touching the objects' own points, and
+voxels of boxed objects of the `clear_far_object_categories` that those rays crossed in columns far from every
+object point (nuplan_occ.rays.free_space); then `mask_camera` from the cameras' frusta with occlusion by the frame's
 cleared occupancy. It declares the `visibility` params section, which the lidar_rays and support stages read
 too.
 
@@ -24,7 +25,7 @@ from nuplan_occ.grid import DEFAULT_GRID
 from nuplan_occ.labels import BOX_CATEGORIES, LABELS
 from nuplan_occ.pipeline.params import param
 from nuplan_occ.pipeline.stage import Stage
-from nuplan_occ.rays.free_space import crossed_objects
+from nuplan_occ.rays.free_space import crossed_far_from_points, crossed_objects
 from nuplan_occ.rays.observations import frames_to, free_space_clear, split_observation_bits
 from nuplan_occ.rays.visibility import camera_segments, visible_along
 
@@ -45,6 +46,11 @@ class VisibilityParams:
     clear_object_categories: tuple[str, ...] = param(
         ("pedestrian", "czone_sign"), "object categories whose voxels the frame's own rays crossed, holding none "
         "of the objects' points, are cleared (needs lidar)", choices=BOX_CATEGORIES)
+    clear_far_object_categories: tuple[str, ...] = param(
+        ("vehicle",), "boxed object categories whose voxels the frame's own rays crossed are cleared where no object "
+        "point lies within clear_far_object_reach_m of their column (needs lidar)", choices=BOX_CATEGORIES)
+    clear_far_object_reach_m: float = param(0.5, "x-y distance from the nearest column holding an object point "
+                                            "beyond which crossed object voxels are cleared", unit="m", low=0.0)
 
 
 def prepare(inputs: dict, params: VisibilityParams) -> dict:
@@ -92,6 +98,13 @@ def run(inputs: dict, frame: dict, params: VisibilityParams) -> dict:
             crossed = crossed_objects(semantics, classes, grids.object_points, own_free, DEFAULT_GRID)
             semantics[crossed] = 0
             cleared += int(np.count_nonzero(crossed))
+        if params.clear_far_object_categories:
+            classes = tuple(LABELS.box_category_to_id[c] for c in params.clear_far_object_categories)
+            boxed = np.isin(semantics, np.asarray(classes, np.uint8)) & (grids.instance > 0)
+            far = crossed_far_from_points(boxed, grids.object_points, own_free, params.clear_far_object_reach_m,
+                                          DEFAULT_GRID)
+            semantics[far] = 0
+            cleared += int(np.count_nonzero(far))
     if inputs["camera_segments"] is not None:
         masks["mask_camera"] = visible_along(semantics > 0, inputs["camera_segments"], DEFAULT_GRID)
     return {"masks": masks, "final_semantics": semantics, "free_cleared": cleared}

@@ -1,7 +1,8 @@
 """Free-space consistency: a ground bulge rays cross is cleared, by this frame's rays or another frame's
 (moved into this frame's grid); the ground voxel, measured voxels and columns without a ground estimate
 are kept. Object voxels of the chosen classes that the frame's own rays crossed are cleared unless they
-hold one of the objects' points."""
+hold one of the objects' points; boxed object voxels the rays crossed are cleared where no object point lies
+near their column."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import pytest
 from nuplan_occ.geometry import make_transform
 from nuplan_occ.grid import GridSpec
 from nuplan_occ.labels import LABELS
-from nuplan_occ.rays.free_space import clearable_background, crossed_objects, free_in_other_frames, point_support
+from nuplan_occ.rays.free_space import (clearable_background, crossed_far_from_points, crossed_objects, free_in_other_frames,
+                                        point_support)
 from nuplan_occ.rays.visibility import FREE, OCCUPIED, UNKNOWN, lidar_observation, lidar_observation_bits
 
 GRID = GridSpec(x_min=-5, x_max=5, y_min=-5, y_max=5, z_min=-1, z_max=1, voxel_size=0.25)
@@ -109,3 +111,20 @@ def test_object_voxels_the_rays_crossed_are_cleared_unless_they_hold_an_object_p
     assert {tuple(v) for v in np.argwhere(cleared)} == {crossed}
     both = crossed_objects(semantics, (pedestrian, vehicle), object_points, packed_free(observation), GRID)
     assert {tuple(v) for v in np.argwhere(both)} == {crossed, other_class}
+
+
+def test_crossed_box_voxels_far_from_every_object_point_are_cleared():
+    """A box 3 m long along x at y = z = 0.1 (row y 20, layer 4), whose returns all came from its near half
+    (x < 2 m). One ray runs along the row to x = 4.8: the box's far end lies more than 0.5 m from every column
+    holding a point and is cleared; crossed voxels within 0.5 m of them stay, and so does a far voxel no ray
+    crossed."""
+    observation = lidar_observation(np.array([[4.8, 0.1, 0.1]]), np.zeros(3), GRID)
+    box = np.zeros(GRID.shape, dtype=bool)
+    box[24:32, 19:22, 4] = True  # x in [1, 3) m
+    object_points = np.zeros(GRID.shape, dtype=bool)
+    object_points[24:28, 20, 4] = True  # returns at x in [1, 2) m
+    cleared = crossed_far_from_points(box, object_points, packed_free(observation), 0.5, GRID)
+    # columns x index 28, 29 lie within 2 columns (0.5 m) of index 27, which holds points; 30, 31 beyond
+    assert {tuple(v) for v in np.argwhere(cleared)} == {(30, 20, 4), (31, 20, 4)}
+    assert observation[31, 21, 4] == UNKNOWN and not cleared[31, 21, 4]  # no ray crossed it
+    assert not crossed_far_from_points(box, object_points, packed_free(observation), 2.0, GRID).any()
