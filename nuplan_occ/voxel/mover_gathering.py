@@ -16,9 +16,10 @@ x-y per height layer of `layer_m` (`overlap_map`: the cross-correlation of the t
   best overlap covers at least `min_overlap` of the smaller occupancy, and its points join the reference for
   the next frame. The first frame that fails ends that direction (the mover left, stopped being flagged, or
   is hidden).
-A neighbour frame contributes its clusters of flagged points (points at most one voxel apart) that come
-within `reach_m` of the gathered points where the motion puts them: whole clusters, as parts of the mover
-seen only then belong to it.
+A neighbour frame's candidates are its clusters of flagged points (points at most one voxel apart) that come
+within `reach_m` of the gathered points where the motion puts them: whole clusters, as parts of the mover seen
+only then belong to it. Once placed, only its points within `reach_m` of the frame's own points join: another
+mover close behind or ahead can share a cluster with it, and would otherwise creep in frame by frame.
 
 Frames: every point array is in one frame (the ego frame of the frame gathered onto), metres; z up.
 """
@@ -195,6 +196,7 @@ def gather_mover(own: np.ndarray, neighbours: dict[int, np.ndarray], settings: G
             if overlap < settings.min_overlap:
                 break
             placed = moved + np.r_[shift, 0.0]
+            placed = placed[_within(placed, own, np.zeros(2), settings.reach_m)]
             gathered.append(placed)
             reference = np.vstack([reference, placed])
             per_step, turn = shift / k, yaw / k

@@ -96,3 +96,15 @@ def test_other_objects_and_a_vanished_mover_are_not_gathered() -> None:
 def test_without_neighbours_only_the_own_points_remain() -> None:
     own = _frames(0.8, 0.0, range(0, 1))[0]
     assert np.array_equal(gather_mover(own, {}, GatherSettings(), 0.25), own)
+
+
+def test_gathered_points_stay_within_reach_of_the_own_points() -> None:
+    """Frame 0 saw the box's rear 2 m only; the frames around saw all of it. Gathered points reach at most
+    reach_m past the own points (whatever shares a neighbour's cluster beyond that stays out)."""
+    frames = _frames(0.8, 0.0, range(-5, 6))
+    own = frames.pop(0)
+    own = own[own[:, 0] < 10.0 - LENGTH / 2 + 2.0]
+    gathered = gather_mover(own, frames, GatherSettings(reach_m=1.0), 0.25)
+    assert len(gathered) >= 4 * len(own)
+    assert gathered[:, 0].max() <= own[:, 0].max() + 1.0 + 1e-9
+    assert np.percentile(_off_surface(gathered, 10.0, 5.0, 0.0), 95) <= 0.1
