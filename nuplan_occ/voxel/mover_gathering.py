@@ -18,8 +18,10 @@ x-y per height layer of `layer_m` (`overlap_map`: the cross-correlation of the t
   is hidden).
 A neighbour frame's candidates are its clusters of flagged points (points at most one voxel apart) that come
 within `reach_m` of the gathered points where the motion puts them: whole clusters, as parts of the mover seen
-only then belong to it. Once placed, only its points within `reach_m` of the frame's own points join: another
-mover close behind or ahead can share a cluster with it, and would otherwise creep in frame by frame.
+only then belong to it. Once placed, only its points within `reach_m` of the frame's own points join, and
+along the motion only those within the own points' span: another mover close behind or ahead can share a
+cluster with it and would otherwise creep in frame by frame, and a shift read a little off along the motion
+(the direction a side constrains least) would leave a trail where the mover was.
 
 Frames: every point array is in one frame (the ego frame of the frame gathered onto), metres; z up.
 """
@@ -200,4 +202,16 @@ def gather_mover(own: np.ndarray, neighbours: dict[int, np.ndarray], settings: G
             gathered.append(placed)
             reference = np.vstack([reference, placed])
             per_step, turn = shift / k, yaw / k
-    return np.vstack(gathered)
+    return _within_own_span(np.vstack(gathered), own, velocity)
+
+
+def _within_own_span(points: np.ndarray, own: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """The points (N, 3) whose position along the motion (velocity (2,), per frame) lies within the own points'
+    span along it: a mover ends, along the way it moves, where its own points end (all points when it did not
+    move)."""
+    speed = float(np.hypot(*velocity[:2]))
+    if speed < 1e-9:
+        return points
+    along = points[:, :2] @ (velocity[:2] / speed)
+    own_along = own[:, :2] @ (velocity[:2] / speed)
+    return points[(along >= own_along.min() - 1e-9) & (along <= own_along.max() + 1e-9)]

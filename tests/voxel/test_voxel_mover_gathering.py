@@ -98,13 +98,18 @@ def test_without_neighbours_only_the_own_points_remain() -> None:
     assert np.array_equal(gather_mover(own, {}, GatherSettings(), 0.25), own)
 
 
-def test_gathered_points_stay_within_reach_of_the_own_points() -> None:
-    """Frame 0 saw the box's rear 2 m only; the frames around saw all of it. Gathered points reach at most
-    reach_m past the own points (whatever shares a neighbour's cluster beyond that stays out)."""
+def test_gathered_points_stay_within_the_own_points_span_along_the_motion() -> None:
+    """Frame 0 saw the box's rear 2 m only; the frames around saw all of it. Along the motion the gathered
+    points end where the own points end (a shift read a little off along a side would leave a trail); across
+    it they reach at most reach_m past them."""
     frames = _frames(0.8, 0.0, range(-5, 6))
     own = frames.pop(0)
     own = own[own[:, 0] < 10.0 - LENGTH / 2 + 2.0]
+    narrow = own[own[:, 1] > 5.0 + WIDTH / 2 - 0.5]  # the side and a strip of roof beside it
     gathered = gather_mover(own, frames, GatherSettings(reach_m=1.0), 0.25)
     assert len(gathered) >= 4 * len(own)
-    assert gathered[:, 0].max() <= own[:, 0].max() + 1.0 + 1e-9
+    assert gathered[:, 0].max() <= own[:, 0].max() + 1e-9 and gathered[:, 0].min() >= own[:, 0].min() - 1e-9
     assert np.percentile(_off_surface(gathered, 10.0, 5.0, 0.0), 95) <= 0.1
+    across = gather_mover(narrow, frames, GatherSettings(reach_m=1.0), 0.25)
+    assert across[:, 1].min() < narrow[:, 1].min() - 0.5  # the roof seen by the frames around joins
+    assert across[:, 1].min() >= narrow[:, 1].min() - 1.0 - 1e-9

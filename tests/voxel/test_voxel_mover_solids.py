@@ -78,10 +78,11 @@ def test_unknown_ground_gives_no_solid() -> None:
 
 
 def test_each_vehicle_cluster_gathers_its_neighbours_and_other_classes_are_left() -> None:
-    """Frame 0 saw the box but for its front 0.8 m; the frames around (moving 0.5 m per frame along x) saw it
-    all. The vehicle cluster's solid covers the whole box; an `other` cluster is not gathered."""
+    """Frame 0 saw the box's side and the half of its roof beside it; the frames around (moving 0.5 m per frame
+    along x) saw all of the roof. The vehicle cluster's solid covers the whole box; an `other` cluster is not
+    gathered."""
     full = {k: _box_side_and_roof(0.5 * k, seed=k + 3) for k in range(-3, 4)}
-    own = full[0][full[0][:, 0] < BOX_HI[0] - 0.8]
+    own = full[0][full[0][:, 1] > (BOX_LO[1] + BOX_HI[1]) / 2]
     stray = np.c_[np.full(10, -20.1), np.linspace(-10.1, -9.0, 10), np.full(10, 0.1)]
     index = DEFAULT_GRID.point_to_index(np.vstack([own, stray]))[0]
     voxels = np.unique(index, axis=0)
