@@ -60,6 +60,13 @@ class GridSpec:
         inside = np.all((idx >= 0) & (idx < shape), axis=1)
         return np.clip(idx, 0, shape - 1), inside
 
+    def column_disc(self, reach_m: float) -> np.ndarray:
+        """bool (2r + 1, 2r + 1) footprint of the columns within reach_m (x-y, centre to centre, whole voxels r)
+        of the middle one."""
+        radius = int(np.floor(reach_m / self.voxel_size + 1e-9))
+        offsets = np.arange(-radius, radius + 1)
+        return np.hypot(*np.meshgrid(offsets, offsets, indexing="ij")) <= radius + 1e-9
+
     def index_to_center(self, indices: np.ndarray) -> np.ndarray:
         """Centres (N, 3) in metres, ego frame, of voxel indices (N, 3)."""
         return self.lower + (np.asarray(indices, dtype=np.float64) + 0.5) * self.voxel_size

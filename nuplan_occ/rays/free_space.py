@@ -99,10 +99,7 @@ def crossed_far_from_points(candidates: np.ndarray, object_points: np.ndarray, o
     an object's own point (object_points bool (X, Y, Z)). The end of a box from which no return came, at this
     frame or in the sweeps around it, while rays passed through it, is empty space the box covers; the voxels
     a surface partly fills lie near its returns and stay."""
-    radius = int(np.floor(reach_m / grid.voxel_size + 1e-9))
-    offsets = np.arange(-radius, radius + 1)
-    disc = np.hypot(*np.meshgrid(offsets, offsets, indexing="ij")) <= radius + 1e-9
-    near = binary_dilation(object_points.any(axis=2), structure=disc)
+    near = binary_dilation(object_points.any(axis=2), structure=grid.column_disc(reach_m))
     return free_voxels_in_frames(candidates & ~near[:, :, None], np.eye(4)[None],
                                  np.asarray(own_free_bits, dtype=np.uint8)[None], grid)
 

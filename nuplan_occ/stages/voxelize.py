@@ -127,7 +127,8 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
     if params.unboxed_movers:
         points = inputs["frame_movers"][position]
         others = neighbour_movers(inputs["frame_movers"], position, params.mover_static_frames)
-        movers = mover_voxels(transform_points(T_ego_from_scene, points), DEFAULT_GRID, params.mover_min_voxels,
+        points_ego = transform_points(T_ego_from_scene, points)
+        movers = mover_voxels(points_ego, DEFAULT_GRID, params.mover_min_voxels,
                               params.mover_vehicle_extent_m, bicycle_extent_m=params.mover_bicycle_extent_m,
                               recurring=recurring_points(points, others, DEFAULT_GRID.voxel_size) if others else None,
                               static_fraction=params.mover_static_fraction, ground_height=grids.ground_height,
@@ -145,7 +146,7 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
             around = {step: transform_points(T_ego_from_scene, p) for step, p in
                       movers_around(inputs["frame_movers"], position, params.mover_gather_frames).items()}
             solids = gathered_solids(
-                movers, transform_points(T_ego_from_scene, points), around, grids.ground_height,
+                movers, points_ego, around, grids.ground_height,
                 tuple(LABELS.box_category_to_id[c] for c in params.mover_gather_categories),
                 GatherSettings(step_m=params.mover_gather_step_m, min_overlap=params.mover_gather_min_overlap),
                 params.mover_solid_reach_m, DEFAULT_GRID)

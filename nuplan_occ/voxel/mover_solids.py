@@ -40,13 +40,12 @@ def outline_solid(points: np.ndarray, ground_height: np.ndarray | None, reach_m:
     idx = idx[inside]
     if not len(idx):
         return np.zeros((0, 3), np.int64)
-    radius = int(np.floor(reach_m / grid.voxel_size + 1e-9))
+    disc = grid.column_disc(reach_m)
+    radius = disc.shape[0] // 2
     lower = np.maximum(idx[:, :2].min(axis=0) - radius, 0)
     upper = np.minimum(idx[:, :2].max(axis=0) + radius, np.array(grid.shape[:2]) - 1)
     top = np.full(tuple(upper - lower + 1), -1, dtype=np.int64)
     np.maximum.at(top, tuple((idx[:, :2] - lower).T), idx[:, 2])
-    offsets = np.arange(-radius, radius + 1)
-    disc = np.hypot(*np.meshgrid(offsets, offsets, indexing="ij")) <= radius + 1e-9
     unseen = grid.shape[2]  # above every layer: a column without points never sets the lowest top around it
     lowest_around = minimum_filter(np.where(top >= 0, top, unseen), footprint=disc, mode="constant", cval=unseen)
     reach_top = np.where(top >= 0, top, np.where(lowest_around < unseen, lowest_around, -1))
