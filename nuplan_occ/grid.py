@@ -108,3 +108,12 @@ def true_indices(mask: np.ndarray) -> np.ndarray:
     """(K, 3) int64: the indices [x, y, z] of the True voxels of a bool (X, Y, Z) grid, in C order (the rows of
     np.argwhere, which walks every axis of the grid and is about 10x slower on a sparse 400 x 400 x 32 grid)."""
     return np.stack(np.unravel_index(np.flatnonzero(mask), mask.shape), axis=1)
+
+
+def column_runs(first: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The voxels of vertical runs, one run per column c: layers first[c] .. first[c] + count[c] - 1 (count >= 0;
+    first, count (C,) int). Returns (column (R,), layer (R,)) int64, R = count.sum(): each voxel's column index
+    into first / count and its layer, column by column, layers ascending."""
+    count = np.asarray(count, np.int64)
+    column = np.repeat(np.arange(len(count)), count)
+    return column, np.asarray(first, np.int64)[column] + (np.arange(len(column)) - np.repeat(np.cumsum(count) - count, count))

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec, column_runs
 from nuplan_occ.voxel.compose import FrameGrids
 
 
@@ -39,8 +39,8 @@ def reach_down_to_ground(grids: FrameGrids, class_ids: tuple[int, ...], reach_m:
     gap = low - floor - 1
     keep = on_ground & (gap >= 1) & (gap <= layers)
     ci, cj, low, floor, gap = ci[keep], cj[keep], low[keep], floor[keep], gap[keep]
-    i, j, source = np.repeat(ci, gap), np.repeat(cj, gap), np.repeat(low, gap)
-    z = np.repeat(floor + 1, gap) + (np.arange(len(i)) - np.repeat(np.cumsum(gap) - gap, gap))
+    run, z = column_runs(floor + 1, gap)
+    i, j, source = ci[run], cj[run], low[run]
     semantics[i, j, z] = semantics[i, j, source]
     instance[i, j, z] = instance[i, j, source]
     flow[i, j, z] = flow[i, j, source]

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.ndimage import minimum_filter
 from scipy.spatial import Delaunay, QhullError
 
-from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec, column_runs
 from nuplan_occ.voxel.ground import ground_height_index
 from nuplan_occ.voxel.mover_gathering import GatherSettings, gather_mover
 from nuplan_occ.voxel.movers import MoverVoxels
@@ -61,10 +61,8 @@ def outline_solid(points: np.ndarray, ground_height: np.ndarray | None, reach_m:
               else ground_height_index(ground_height, grid)[ci + lower[0], cj + lower[1]])
     keep = (ground >= 0) & (height > ground)
     ci, cj, ground, height = ci[keep] + lower[0], cj[keep] + lower[1], ground[keep], height[keep]
-    count = height - ground
-    row = np.repeat(np.arange(len(ci)), count)
-    z = ground[row] + 1 + (np.arange(len(row)) - np.repeat(np.cumsum(count) - count, count))
-    return np.c_[ci[row], cj[row], z].astype(np.int64)
+    run, z = column_runs(ground + 1, height - ground)
+    return np.c_[ci[run], cj[run], z].astype(np.int64)
 
 
 def gathered_solids(movers: MoverVoxels, own_points: np.ndarray, neighbours: dict[int, np.ndarray],

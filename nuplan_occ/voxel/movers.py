@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nuplan_occ.points.voxel_reduce import voxel_keys
-from nuplan_occ.grid import DEFAULT_GRID, GridSpec
+from nuplan_occ.grid import DEFAULT_GRID, GridSpec, column_runs
 from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
 from nuplan_occ.voxel.compose import FrameGrids
 from nuplan_occ.voxel.ground import ground_height_index
@@ -164,9 +164,8 @@ def _down_to_ground(idx: np.ndarray, grid: GridSpec, ground_height: np.ndarray |
     gap = lowest - ground
     reach = (ground >= 0) & (gap > 0) & (gap <= int(round(reach_m / grid.voxel_size)))
     columns, ground, gap = columns[reach], ground[reach], gap[reach]
-    row = np.repeat(np.arange(len(columns)), gap)
-    step = np.arange(len(row)) - np.repeat(np.cumsum(gap) - gap, gap)
-    return np.c_[columns[row], ground[row] + step].astype(np.int64)
+    run, z = column_runs(ground, gap)
+    return np.c_[columns[run], z].astype(np.int64)
 
 
 def _height(idx: np.ndarray, cluster_of: np.ndarray, count: int, grid: GridSpec, ground_height: np.ndarray | None
