@@ -11,7 +11,9 @@ The hull keeps every cell no ray reached, and nothing reaches the air above an o
 gives no return (above a truck's bed, beside its cab). `under_top_envelope` removes those cells: an object is
 taken to have no overhang, so a cell higher than the highest point of the columns around it is air; a column with
 no point of the object's body (only ground returns, or none) around it may take the top of its cross-section
-(the seen columns across the box's width at its place along the length), else it is unknown and keeps its cells.
+(the seen columns across the box's width at its place along the length), then a low quantile of the tops of the
+columns seen anywhere on the object (the end of a vehicle of which no return came at all is its bonnet or bed,
+lower than its cabin, rather than the box's full height), else it is unknown and keeps its cells.
 """
 
 from __future__ import annotations
@@ -194,13 +196,16 @@ def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np
 
 
 def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float,
-                       reach_m: float, pad_m: float, floor_clearance_m: float, across_width: bool = False) -> np.ndarray:
+                       reach_m: float, pad_m: float, floor_clearance_m: float, across_width: bool = False,
+                       unseen_quantile: float | None = None) -> np.ndarray:
     """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size,
     resolution)`) whose bottom lies at most pad_m above the highest of the object's body points (points_box
     (N, 3) inside the box and more than floor_clearance_m above its bottom) in the columns within reach_m (x and
     y) of theirs. A column with no such point within reach takes, with `across_width`, the highest point of its
     cross-section (every column across the box's width within reach_m along its length: a vehicle is about as
-    tall across its width, so the unseen top of a hood or a bus's far end ends where its seen sides do); cells of
+    tall across its width, so the unseen top of a hood or a bus's far end ends where its seen sides do), then with
+    `unseen_quantile` (in [0, 1]) that quantile of the highest points of all the columns holding one (an end of
+    which nothing was seen takes a low top of the seen ones: a bonnet's or a bed's, not the cabin's); cells of
     columns still without one are kept (True). Metres."""
     size = np.asarray(size, np.float64)
     counts, edge = lattice_shape(size, resolution)
@@ -215,6 +220,9 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
     if across_width:
         section = ndimage.maximum_filter1d(top.max(axis=1), size=2 * reach + 1, mode="constant", cval=-np.inf)
         near = np.where(np.isneginf(near), section[:, None], near)
+    seen_tops = top[~np.isneginf(top)]
+    if unseen_quantile is not None and len(seen_tops):
+        near = np.where(np.isneginf(near), np.quantile(seen_tops, unseen_quantile), near)
     top = near
     cells = np.asarray(cells_box, np.float64).reshape(-1, 3)
     column = np.floor((cells[:, :2] + size[:2] / 2) / edge[:2]).astype(np.int64)
@@ -225,12 +233,14 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
 
 @dataclass(frozen=True)
 class TopEnvelope:
-    """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m, across_width."""
+    """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m, across_width,
+    unseen_quantile."""
 
     reach_m: float
     pad_m: float
     floor_clearance_m: float
     across_width: bool = False
+    unseen_quantile: float | None = None
 
 
 def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float,
@@ -244,7 +254,8 @@ def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: 
     cells = carve_object_solid(points_box, origins_box, size, resolution=resolution, through=through)
     if envelope is not None:
         cells = cells[under_top_envelope(cells, points_box, size, resolution, envelope.reach_m, envelope.pad_m,
-                                         envelope.floor_clearance_m, envelope.across_width)]
+                                         envelope.floor_clearance_m, envelope.across_width,
+                                         envelope.unseen_quantile)]
     observed = cells_holding_points(cells, points_box, size, resolution)
     if corners:
         return SolidSamples(cell_corner_points(cells, size, resolution), np.repeat(observed, 8))

@@ -59,6 +59,9 @@ class ReconstructParams:
                                     low=0.0)
     envelope_across_width: bool = param(True, "a column with no point near takes the highest point across the box's "
                                         "width at its place along the length")
+    envelope_unseen_quantile: float = param(0.1, "a column with no point near nor across the width takes this "
+                                            "quantile of the seen columns' highest points (an unseen end is a "
+                                            "bonnet or a bed, not a cabin)", low=0.0, high=1.0)
 
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
@@ -72,7 +75,7 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
         background_surface = background_surface.with_triangles(vertices, faces, ground_fill_faces=len(faces))
     object_surfaces, object_solids = {}, {}
     envelope = TopEnvelope(params.envelope_reach_m, params.envelope_pad_m, params.envelope_floor_m,
-                           params.envelope_across_width)
+                           params.envelope_across_width, params.envelope_unseen_quantile)
     for track, aggregate in inputs["objects"].items():
         if not aggregate.rigid:
             continue

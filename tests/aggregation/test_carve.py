@@ -225,3 +225,28 @@ def test_an_unseen_hood_top_ends_where_its_seen_side_does_across_the_width():
     trunk = cells[:, 0] < -1.9
     assert across[trunk].all() and column_only[trunk].all()
     assert across[(np.abs(cells[:, 0]) < 0.6)].all()  # the cabin's whole cross-section, up to its roof
+
+
+def test_an_end_seen_nowhere_takes_a_low_top_of_the_seen_columns():
+    """A 7.4 x 2.3 x 2.9 m truck box seen only from behind and above its rear: its bed (x < -1.8) up to 0.1 m, its
+    cab (-1.8 < x < 1.6) up to the roof (1.4); of its front (x > 2) no return came. With unseen_quantile 0.1 the
+    front ends at the bed's top (+ the pad) and not at the box's; without it the front keeps its box."""
+    from nuplan_occ.aggregation.carve import lattice_shape, under_top_envelope
+
+    size = np.array([7.4, 2.3, 2.9])
+    rng = np.random.default_rng(2)
+    bed = np.column_stack([rng.uniform(-3.7, -1.8, 4000), rng.uniform(-1.15, 1.15, 4000), np.full(4000, 0.1)])
+    cab = np.column_stack([rng.uniform(-1.8, 1.6, 6000), rng.uniform(-1.15, 1.15, 6000), np.full(6000, 1.4)])
+    points = np.vstack([bed, cab])
+    counts, edge = lattice_shape(size, 0.1)
+    ijk = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), axis=-1).reshape(-1, 3)
+    cells = (ijk + 0.5) * edge - size / 2
+    settings = dict(reach_m=0.3, pad_m=0.1, floor_clearance_m=0.3, across_width=True)
+    low = under_top_envelope(cells, points, size, 0.1, unseen_quantile=0.1, **settings)
+    kept = under_top_envelope(cells, points, size, 0.1, **settings)
+    front = cells[:, 0] > 2.0
+    above_bed = cells[:, 2] - edge[2] / 2 > 0.1 + 0.1 + 1e-9
+    assert not low[front & above_bed].any() and low[front & ~above_bed].all()
+    assert kept[front].all()
+    cab_inside = (np.abs(cells[:, 0]) < 1.2) & (cells[:, 2] < 1.4)
+    assert low[cab_inside].all() and not low[(cells[:, 0] < -2.2) & above_bed].any()
