@@ -21,7 +21,10 @@ within `reach_m` of the gathered points where the motion puts them: whole cluste
 only then belong to it. Once placed, only its points within `reach_m` of the frame's own points join, and
 along the motion only those within the own points' span: another mover close behind or ahead can share a
 cluster with it and would otherwise creep in frame by frame, and a shift read a little off along the motion
-(the direction a side constrains least) would leave a trail where the mover was.
+(the direction a side constrains least) would leave a trail where the mover was. Last, a placed point stays only
+where a point of another frame, or of the frame's own, lies within one voxel of it (`supported`): once placed, a
+surface recurs across the frames, while a stray return (a floater in the air, a ghost) that was flagged near the
+mover in one frame does not, and would widen the mover's outline.
 
 Frames: every point array is in one frame (the ego frame of the frame gathered onto), metres; z up.
 """
@@ -31,6 +34,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import maximum_filter
 from scipy.signal import fftconvolve
 
 from nuplan_occ.points.knn import KdTree
@@ -202,7 +206,26 @@ def gather_mover(own: np.ndarray, neighbours: dict[int, np.ndarray], settings: G
             gathered.append(placed)
             reference = np.vstack([reference, placed])
             per_step, turn = shift / k, yaw / k
-    return _within_own_span(np.vstack(gathered), own, velocity)
+    return _within_own_span(supported(gathered, voxel_m), own, velocity)
+
+
+
+def supported(parts: list[np.ndarray], cell_m: float) -> np.ndarray:
+    """(M, 3) the points of parts[0] (the frame's own points) and those of every other part (one neighbour frame's
+    placed points, (K, 3) each) that lie within one cell (Chebyshev, on a lattice of cells of cell_m, m) of a point
+    of another part."""
+    if len(parts) < 2:
+        return parts[0]
+    points = np.vstack(parts)
+    part = np.repeat(np.arange(len(parts)), [len(p) for p in parts])
+    cell = np.floor(points / cell_m).astype(np.int64)
+    cell -= cell.min(axis=0) - 1  # a free cell on every side, so the neighbourhoods stay inside the lattice
+    near = np.zeros((len(parts), *(cell.max(axis=0) + 2)), dtype=np.uint8)
+    near[part, cell[:, 0], cell[:, 1], cell[:, 2]] = 1
+    near = maximum_filter(near, size=(1, 3, 3, 3), mode="constant")
+    at = (cell[:, 0], cell[:, 1], cell[:, 2])
+    others_near = near.sum(axis=0, dtype=np.int64)[at] - near[(part, *at)]
+    return points[(part == 0) | (others_near >= 1)]
 
 
 def _within_own_span(points: np.ndarray, own: np.ndarray, velocity: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nuplan_occ.voxel.mover_gathering import GatherSettings, gather_mover, joint_velocity
+from nuplan_occ.voxel.mover_gathering import GatherSettings, gather_mover, joint_velocity, supported
 
 LENGTH, WIDTH, HEIGHT = 4.5, 1.8, 1.5
 
@@ -113,3 +113,25 @@ def test_gathered_points_stay_within_the_own_points_span_along_the_motion() -> N
     across = gather_mover(narrow, frames, GatherSettings(reach_m=1.0), 0.25)
     assert across[:, 1].min() < narrow[:, 1].min() - 0.5  # the roof seen by the frames around joins
     assert across[:, 1].min() >= narrow[:, 1].min() - 1.0 - 1e-9
+
+
+def test_a_stray_return_flagged_beside_the_mover_in_one_frame_is_not_gathered() -> None:
+    """Frame 2 also flagged a floater 0.6 m beside the box's side (within reach of the own points, in the cluster
+    of the side's points): no other frame has a point there once placed, so it stays out, while the side's
+    points, which recur, are gathered."""
+    frames = _frames(0.8, 0.0, range(-5, 6))
+    own = frames.pop(0)
+    floater = np.array([[10.0 + 2 * 0.8, 5.0 + WIDTH / 2 + 0.6, 1.1]])
+    frames[2] = np.vstack([frames[2], floater])
+    gathered = gather_mover(own, frames, GatherSettings(reach_m=1.0), 0.25)
+    assert len(gathered) >= 8 * len(own)
+    assert not np.any(np.linalg.norm(gathered - (floater[0] - [2 * 0.8, 0.0, 0.0]), axis=1) < 0.2)
+
+
+def test_supported_keeps_own_points_and_points_another_part_reaches() -> None:
+    own = np.array([[0.0, 0.0, 0.0]])
+    near_own = np.array([[0.2, 0.0, 0.0]])
+    alone = np.array([[2.0, 2.0, 2.0]])
+    pair = np.array([[5.0, 5.0, 1.0]]), np.array([[5.1, 5.1, 1.1]])
+    kept = supported([own, np.vstack([near_own, alone]), pair[0], pair[1]], 0.25)
+    assert {tuple(p) for p in kept} == {(0.0, 0.0, 0.0), (0.2, 0.0, 0.0), (5.0, 5.0, 1.0), (5.1, 5.1, 1.1)}
