@@ -54,7 +54,7 @@ class ReconstructParams:
                                                  "not solid)", choices=BOX_CATEGORIES)
     envelope_reach_m: float = param(0.3, "a solid cell keeps the highest point of the columns this near", unit="m",
                                     low=0.0)
-    envelope_pad_m: float = param(0.1, "a solid cell may start this far above that point", unit="m", low=0.0)
+    envelope_pad_m: float = param(0.0, "a solid cell may start this far above that point", unit="m", low=0.0)
     envelope_floor_m: float = param(0.3, "points this close above the box's bottom are ground, no top", unit="m",
                                     low=0.0)
     envelope_across_width: bool = param(True, "a column with no point near takes the highest point across the box's "
