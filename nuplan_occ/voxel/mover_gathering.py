@@ -209,7 +209,6 @@ def gather_mover(own: np.ndarray, neighbours: dict[int, np.ndarray], settings: G
     return _within_own_span(supported(gathered, voxel_m), own, velocity)
 
 
-
 def supported(parts: list[np.ndarray], cell_m: float) -> np.ndarray:
     """(M, 3) the points of parts[0] (the frame's own points) and those of every other part (one neighbour frame's
     placed points, (K, 3) each) that lie within one cell (Chebyshev, on a lattice of cells of cell_m, m) of a point
