@@ -14,6 +14,8 @@ no point of the object's body (only ground returns, or none) around it may take 
 (the seen columns across the box's width at its place along the length), then a low quantile of the tops of the
 columns seen anywhere on the object (the end of a vehicle of which no return came at all is its bonnet or bed,
 lower than its cabin, rather than the box's full height), else it is unknown and keeps its cells.
+`within_side_reach` ends a solid where its points end across and along the box, symmetrically about its centre:
+the box's room around its object, which no ray may have crossed on the object's hidden side, is not solid.
 """
 
 from __future__ import annotations
@@ -231,16 +233,35 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
     return np.isneginf(column_top) | (cells[:, 2] - edge[2] / 2 <= column_top + pad_m)
 
 
+def within_side_reach(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float,
+                      floor_clearance_m: float, quantile: float, min_points: int = 20) -> np.ndarray:
+    """(M,) bool: the lattice cells (centres cells_box (M, 3), box frame, lattice `lattice_shape(size, resolution)`)
+    that start within the `quantile` of the object's body points' |x| and |y| (points_box (N, 3) more than
+    floor_clearance_m above the box's bottom): symmetric about the box centre, so a side no ray reached mirrors
+    the seen one, and a box with room around its object (padded, or too large) draws none of it solid. Fewer
+    than min_points body points: every cell (True). Metres."""
+    size = np.asarray(size, np.float64)
+    cells = np.asarray(cells_box, np.float64).reshape(-1, 3)
+    points = np.asarray(points_box, np.float64).reshape(-1, 3)
+    body = points[points[:, 2] > -size[2] / 2 + floor_clearance_m]
+    if len(body) < min_points:
+        return np.ones(len(cells), dtype=bool)
+    _, edge = lattice_shape(size, resolution)
+    reach = np.quantile(np.abs(body[:, :2]), quantile, axis=0)
+    return np.all(np.abs(cells[:, :2]) - edge[:2] / 2 <= reach, axis=1)
+
+
 @dataclass(frozen=True)
 class TopEnvelope:
     """The settings of `under_top_envelope` for a solid (m): reach_m, pad_m, floor_clearance_m, across_width,
-    unseen_quantile."""
+    unseen_quantile; with side_quantile, the solid also ends `within_side_reach` of that quantile."""
 
     reach_m: float
     pad_m: float
     floor_clearance_m: float
     across_width: bool = False
     unseen_quantile: float | None = None
+    side_quantile: float | None = None
 
 
 def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: np.ndarray, resolution: float,
@@ -248,7 +269,7 @@ def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: 
                          envelope: TopEnvelope | None = None) -> SolidSamples:
     """An object's carved solid (`carve_object_solid` of its points_box (N, 3) seen from origins_box (N, 3), box
     of `size` (3,), cells of edge <= resolution, more carving rays `through`; all box frame, m), with `envelope`
-    only its cells `under_top_envelope`, as samples: the solid cells' centres, or with `corners` the 8 points
+    only its cells `under_top_envelope` (and `within_side_reach` with envelope.side_quantile), as samples: the solid cells' centres, or with `corners` the 8 points
     near each cell's corners (`cell_corner_points`, so the voxelizer marks every voxel a cell overlaps); each
     sample observed when its cell holds a point."""
     cells = carve_object_solid(points_box, origins_box, size, resolution=resolution, through=through)
@@ -256,6 +277,9 @@ def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: 
         cells = cells[under_top_envelope(cells, points_box, size, resolution, envelope.reach_m, envelope.pad_m,
                                          envelope.floor_clearance_m, envelope.across_width,
                                          envelope.unseen_quantile)]
+        if envelope.side_quantile is not None:
+            cells = cells[within_side_reach(cells, points_box, size, resolution, envelope.floor_clearance_m,
+                                            envelope.side_quantile)]
     observed = cells_holding_points(cells, points_box, size, resolution)
     if corners:
         return SolidSamples(cell_corner_points(cells, size, resolution), np.repeat(observed, 8))

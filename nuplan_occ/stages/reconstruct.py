@@ -52,7 +52,7 @@ class ReconstructParams:
     envelope_categories: tuple[str, ...] = param(("vehicle",), "carved categories whose solids end at the top of "
                                                  "their points (no overhang: the unseen air above a truck's bed is "
                                                  "not solid)", choices=BOX_CATEGORIES)
-    envelope_reach_m: float = param(0.3, "a solid cell keeps the highest point of the columns this near", unit="m",
+    envelope_reach_m: float = param(0.1, "a solid cell keeps the highest point of the columns this near", unit="m",
                                     low=0.0)
     envelope_pad_m: float = param(0.0, "a solid cell may start this far above that point", unit="m", low=0.0)
     envelope_floor_m: float = param(0.3, "points this close above the box's bottom are ground, no top", unit="m",
@@ -62,6 +62,10 @@ class ReconstructParams:
     envelope_unseen_quantile: float = param(0.1, "a column with no point near nor across the width takes this "
                                             "quantile of the seen columns' highest points (an unseen end is a "
                                             "bonnet or a bed, not a cabin)", low=0.0, high=1.0)
+    envelope_side_quantile: float = param(0.999, "a solid of envelope_categories ends at this quantile of its body "
+                                          "points' reach along and across its box, symmetric about the centre (the box's "
+                                          "room around the object is not solid; 1: the farthest point)", low=0.0,
+                                          high=1.0)
 
 
 def run(inputs: dict, params: ReconstructParams) -> dict:
@@ -75,7 +79,7 @@ def run(inputs: dict, params: ReconstructParams) -> dict:
         background_surface = background_surface.with_triangles(vertices, faces, ground_fill_faces=len(faces))
     object_surfaces, object_solids = {}, {}
     envelope = TopEnvelope(params.envelope_reach_m, params.envelope_pad_m, params.envelope_floor_m,
-                           params.envelope_across_width, params.envelope_unseen_quantile)
+                           params.envelope_across_width, params.envelope_unseen_quantile, params.envelope_side_quantile)
     for track, aggregate in inputs["objects"].items():
         if not aggregate.rigid:
             continue

@@ -93,6 +93,8 @@ class TrackParams:
     shrink_quantile: float = param(FIT.shrink_quantile, "a shrink keeps this share of the track's points' reach on "
                                    "each axis", low=0.0, high=1.0)
     shrink_pad_m: float = param(FIT.pad_m, "a shrunk box reaches this far beyond its points", unit="m", low=0.0)
+    shrink_raise_m: float = param(FIT.raise_max_m, "the top of a box of shrink_categories rises by at most this to "
+                                  "hold its track's points above it (a box too low for its object)", unit="m", low=0.0)
     snap_keep_ratio: float = param(SNAP.keep_ratio, "a box already holding this share of the best shift's points "
                                    "stays", low=0.0, high=1.0)
 
@@ -138,7 +140,7 @@ def run(inputs: dict, params: TrackParams) -> dict:
     fit = BoxFitParams(grow_margin_m=params.fit_margin_m, grow_categories=params.fit_categories,
                        shrink_categories=params.shrink_categories, max_shrink=params.shrink_max,
                        shrink_quantile=params.shrink_quantile, pad_m=params.shrink_pad_m,
-                       floor_clearance_m=params.empty_clearance_m)
+                       floor_clearance_m=params.empty_clearance_m, raise_max_m=params.shrink_raise_m)
     object_boxes = fitted_boxes(object_boxes, fitted_extents(object_boxes, lambda i: scene.sweeps[i].xyz, origin, fit))
     for i in ok:
         object_points[i] = points_per_box(scene.sweeps[i].xyz, object_boxes[i], origin)

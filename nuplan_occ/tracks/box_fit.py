@@ -9,7 +9,9 @@ over all its sweeps in its corrected box frame (origin at the box centre, x alon
   parts of an object few sweeps saw, a truck's body below the cars around it, are a small share of its points),
   by at most `max_shrink` of the extent, and the bottom rises to the low quantile of all the box's points (the
   road under a box reaching below it) less pad_m, by at most `floor_clearance_m`: a box's floor band is where its
-  road lies, and an object whose lower part few returns saw (a truck behind parked cars) keeps it.
+  road lies, and an object whose lower part few returns saw (a truck behind parked cars) keeps it. The top may
+  also rise, by at most `raise_max_m`, to hold the points above a box too low for its object (its roof): only
+  the top, since the points above a box are seen, where a side grown about the centre would be guessed.
 Both are symmetric about the box centre in x and y, so an object seen from one side keeps its hidden half, and a
 centre off by d keeps d more on each side rather than cutting the object. Points within `floor_clearance_m` of the
 box's bottom (of the ground under it, for a shrink) are the ground, not the object, for every extent but the
@@ -32,7 +34,8 @@ class BoxFitParams:
     (0: no shrinking); pad_m: room left beyond the points' quantile (m); floor_clearance_m: points this close
     above the box's bottom are the ground (m); quantile: of the points' reach for a grow, so that a few stray
     returns around a box do not widen it; shrink_quantile: the same for a shrink, so that they do not hold it
-    open; min_points: a track with fewer object points over its sweeps keeps its box."""
+    open; min_points: a track with fewer object points over its sweeps keeps its box; raise_max_m: largest rise
+    of the top of a box of shrink_categories to hold its points (m; 0: none)."""
 
     grow_margin_m: float = 0.15
     grow_categories: tuple[str, ...] = ("pedestrian",)
@@ -43,15 +46,18 @@ class BoxFitParams:
     quantile: float = 0.99
     shrink_quantile: float = 0.999
     min_points: int = 20
+    raise_max_m: float = 0.2
 
 
 @dataclass(frozen=True)
 class FittedExtent:
     """A track's box extent from its points, in its median box's frame (m): half (3,) = half length, half width
-    and half height; z_shift: the fitted box centre's height above the median box's centre."""
+    and half height; z_shift: the fitted box centre's height above the median box's centre; sides: the length and
+    width are fitted too (False: each box keeps its own, only its height and centre change)."""
 
     half: np.ndarray
     z_shift: float
+    sides: bool = True
 
 
 def _body(points: np.ndarray, size: np.ndarray, floor_clearance_m: float) -> np.ndarray:
@@ -78,32 +84,40 @@ def grown_extent(points: np.ndarray, size: np.ndarray, params: BoxFitParams) -> 
 
 
 def shrunk_extent(points: np.ndarray, size: np.ndarray, params: BoxFitParams) -> FittedExtent | None:
-    """The extent of a box of `size` (3,) shrunk to its track's points (n, 3), box frame, gathered in the box;
-    None when the points are too few or fill it."""
+    """The extent of a box of `size` (3,) shrunk to its track's points (n, 3), box frame, gathered in the box
+    with its top raised by params.raise_max_m: the points inside the box decide the sides and the bottom, a top
+    they fill rises to the points above it; None when the points are too few or fill the box exactly."""
     size = np.asarray(size, np.float64)
     half = size / 2
     if len(points) < params.min_points or params.max_shrink <= 0:
         return None
-    low = max(float(np.quantile(points[:, 2], 1.0 - params.shrink_quantile)), -half[2])
-    body = points[points[:, 2] > low + params.floor_clearance_m]
+    in_box = points[:, 2] <= half[2]
+    if not in_box.any():
+        return None
+    low = max(float(np.quantile(points[in_box, 2], 1.0 - params.shrink_quantile)), -half[2])
+    above_floor = points[:, 2] > low + params.floor_clearance_m
+    body = points[above_floor & in_box]
     if len(body) < params.min_points:
         return None
     floor = half * (1.0 - params.max_shrink)
     reach = _reach(body, params.shrink_quantile) + params.pad_m
     new_half_xy = np.clip(reach[:2], floor[:2], half[:2])
     bottom = float(np.clip(low - params.pad_m, -half[2], -half[2] + params.floor_clearance_m))
-    top = float(np.clip(reach[2], bottom, half[2]))
+    top = reach[2] if reach[2] < half[2] else float(np.quantile(points[above_floor, 2], params.shrink_quantile)) + params.pad_m
+    top = float(np.clip(top, bottom, half[2] + params.raise_max_m))
     height = max(top - bottom, 2 * floor[2])
     bottom = min(bottom, top - height)
-    if np.all(new_half_xy >= half[:2]) and height >= size[2]:
+    sides = not np.allclose(new_half_xy, half[:2], rtol=0.0, atol=1e-9)
+    if not sides and np.allclose([bottom, top], [-half[2], half[2]], rtol=0.0, atol=1e-9):
         return None
-    return FittedExtent(np.r_[new_half_xy, height / 2], float((top + bottom) / 2))
+    return FittedExtent(np.r_[new_half_xy, height / 2], float((top + bottom) / 2), sides)
 
 
 def _gather(boxes: dict[int, Boxes], xyz_of, origin: np.ndarray, params: BoxFitParams
             ) -> tuple[dict[str, list[np.ndarray]], dict[str, np.ndarray], dict[str, str]]:
     """(track -> its box-frame points per sweep, track -> median size, track -> category) of the tracks of the
-    fitted categories, their points gathered in boxes grown by grow_margin_m for grow_categories."""
+    fitted categories, their points gathered in boxes grown by grow_margin_m for grow_categories and with the top
+    raised by raise_max_m for the other shrink_categories (the points stay in the frame of the box as given)."""
     from nuplan_occ.aggregation.split import points_per_box
 
     fitted = set(params.grow_categories) | set(params.shrink_categories)
@@ -119,9 +133,12 @@ def _gather(boxes: dict[int, Boxes], xyz_of, origin: np.ndarray, params: BoxFitP
             sizes.setdefault(track, []).append(size)
             category[track] = c
         grow = np.array([c in params.grow_categories for c in picked.categories], dtype=bool)
-        picked = replace(picked, sizes=picked.sizes + 2.0 * params.grow_margin_m * grow[:, None])
+        rise = params.raise_max_m * np.array([c in params.shrink_categories for c in picked.categories]) * ~grow
+        picked = replace(picked, sizes=picked.sizes + 2.0 * params.grow_margin_m * grow[:, None] + rise[:, None] * [0, 0, 1],
+                         centers=picked.centers + rise[:, None] * [0, 0, 0.5])
+        lift = dict(zip(picked.track_tokens, rise / 2))
         for track, (points, _) in points_per_box(xyz_of(i), picked, origin).items():
-            views.setdefault(track, []).append(points)
+            views.setdefault(track, []).append(points + [0.0, 0.0, lift[track]])
     return views, {track: np.median(np.stack(s), axis=0) for track, s in sizes.items()}, category
 
 
@@ -148,8 +165,9 @@ def fitted_extents(boxes: dict[int, Boxes], xyz_of, origin: np.ndarray, params: 
 
 
 def fitted_boxes(boxes: dict[int, Boxes], extents: dict[str, FittedExtent]) -> dict[int, Boxes]:
-    """sweep -> Boxes with each fitted track's boxes given its extent (`fitted_extents`): size 2 * half, centre
-    raised by z_shift (boxes are upright in their frame, so the box's z is the frame's)."""
+    """sweep -> Boxes with each fitted track's boxes given its extent (`fitted_extents`): size 2 * half (the height
+    only, for an extent whose sides were not fitted), centre raised by z_shift (boxes are upright in their frame, so
+    the box's z is the frame's)."""
     if not extents:
         return boxes
     out = {}
@@ -157,7 +175,8 @@ def fitted_boxes(boxes: dict[int, Boxes], extents: dict[str, FittedExtent]) -> d
         sizes, centers = b.sizes.copy(), b.centers.copy()
         for k, track in enumerate(b.track_tokens):
             if track in extents:
-                sizes[k] = 2.0 * extents[track].half
+                fitted = 2.0 * extents[track].half
+                sizes[k] = fitted if extents[track].sides else [sizes[k, 0], sizes[k, 1], fitted[2]]
                 centers[k, 2] += extents[track].z_shift
         out[i] = replace(b, sizes=sizes, centers=centers)
     return out

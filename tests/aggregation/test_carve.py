@@ -250,3 +250,29 @@ def test_an_end_seen_nowhere_takes_a_low_top_of_the_seen_columns():
     assert kept[front].all()
     cab_inside = (np.abs(cells[:, 0]) < 1.2) & (cells[:, 2] < 1.4)
     assert low[cab_inside].all() and not low[(cells[:, 0] < -2.2) & above_bed].any()
+
+
+def test_a_solid_ends_where_its_points_do_and_its_hidden_side_mirrors_the_seen_one():
+    """A 4.6 x 1.9 x 1.5 m car in a box with 0.3 m of room on every side, seen only from its left (its left side,
+    front and roof): no ray reaches its right side or the box's room there, so the carved solid fills the box up
+    to its right face. Ended within the points' reach (side_quantile), the right side is the left one mirrored."""
+    from nuplan_occ.aggregation.carve import TopEnvelope, object_solid_samples
+
+    rng = np.random.default_rng(3)
+    n = 3000
+    left = np.column_stack([rng.uniform(-2.3, 2.3, n), np.full(n, 0.95), rng.uniform(-0.45, 0.75, n)])
+    front = np.column_stack([np.full(n, 2.3), rng.uniform(-0.95, 0.95, n), rng.uniform(-0.45, 0.75, n)])
+    roof = np.column_stack([rng.uniform(-2.3, 2.3, n), rng.uniform(-0.95, 0.95, n), np.full(n, 0.75)])
+    points = np.vstack([left, front, roof])
+    origins = np.broadcast_to([3.0, 10.0, 1.5], points.shape)
+    size = np.array([5.2, 2.5, 1.5])
+    _, edge = lattice_shape(size, 0.1)
+    settings = dict(reach_m=0.3, pad_m=0.0, floor_clearance_m=0.3, across_width=True)
+    boxed = object_solid_samples(points, origins, size, 0.1, None, False, TopEnvelope(**settings)).points
+    ended = object_solid_samples(points, origins, size, 0.1, None, False,
+                                 TopEnvelope(**settings, side_quantile=0.999)).points
+    assert boxed[:, 1].min() < -1.15 and boxed[:, 0].min() < -2.5  # the hidden right side and rear fill the box
+    assert ended[:, 1].min() >= -0.95 - edge[1] / 2 - 1e-9 and ended[:, 1].min() < -0.85  # mirrored, not cut
+    assert ended[:, 0].min() >= -2.3 - edge[0] / 2 - 1e-9 and ended[:, 0].min() < -2.2
+    inside = (np.abs(boxed[:, 0]) < 2.2) & (np.abs(boxed[:, 1]) < 0.85)
+    assert inside.sum() == ((np.abs(ended[:, 0]) < 2.2) & (np.abs(ended[:, 1]) < 0.85)).sum()  # nothing else moves

@@ -79,6 +79,30 @@ def test_fitted_boxes_resize_every_sweep_of_a_track_and_raise_its_centre():
     assert fitted_extents(sweeps, lambda i: truck, np.zeros(3), BoxFitParams(shrink_categories=())) == {}
 
 
+def test_a_box_too_low_for_its_truck_raises_its_top_to_the_roof_by_at_most_the_cap():
+    """An auto-labelled box 0.3 m too short, standing on the road: the roof's returns lie above it. The top
+    rises to them (the points decide the shape), by at most raise_max_m; the bottom stays, and so does each
+    sweep's own length and width (the sides were not fitted)."""
+    rng = np.random.default_rng(6)
+    truck = _truck_surface(rng, ("left", "front", "top"))  # the road at z = 0, the roof at 2.6
+    center = np.array([10.0, 0.0, 1.15])  # ego frame: bottom on the road, top 0.3 m under the roof
+
+    def boxes(k: int) -> Boxes:
+        low = np.array([7.7 + 0.04 * k, 2.4, 2.3])
+        return Boxes("ego", np.array([center]), np.array([low]), np.zeros(1), np.zeros((1, 3)), ["vehicle"],
+                     ["truck"], [f"b{k}"])
+
+    sweeps = {0: boxes(0), 1: boxes(1)}
+    for cap, top in ((0.5, 2.6 + 0.1), (0.2, 2.3 + 0.2)):
+        fitted = fitted_boxes(sweeps, fitted_extents(sweeps, lambda i: truck + [10.0, 0.0, 0.0], np.zeros(3),
+                                                     BoxFitParams(raise_max_m=cap)))
+        for k, b in fitted.items():
+            assert abs(b.centers[0, 2] + b.sizes[0, 2] / 2 - top) < 0.02  # the roof plus the pad, or the cap
+            assert abs(b.centers[0, 2] - b.sizes[0, 2] / 2) < 1e-9  # the bottom stays on the road
+            assert np.allclose(b.sizes[0, :2], [7.7 + 0.04 * k, 2.4])
+    assert fitted_extents(sweeps, lambda i: truck + [10.0, 0.0, 0.0], np.zeros(3), BoxFitParams(raise_max_m=0.0)) == {}
+
+
 def test_a_truck_seen_above_its_lower_part_keeps_it():
     """A fitting truck box whose lower 1.5 m few returns saw (its upper part seen over parked cars): the bottom
     rises by at most the floor band (0.3 m), not to the lowest returns, so the truck keeps its lower part."""
