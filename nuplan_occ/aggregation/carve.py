@@ -197,6 +197,13 @@ def cells_holding_points(cells_box: np.ndarray, points_box: np.ndarray, size: np
     return held
 
 
+def body_points(points_box: np.ndarray, size: np.ndarray, floor_clearance_m: float) -> np.ndarray:
+    """(K, 3) the object's body: those of points_box (N, 3, box frame, m) more than floor_clearance_m above the
+    bottom of a box of `size` (3,) (the points below are its ground)."""
+    points = np.asarray(points_box, np.float64).reshape(-1, 3)
+    return points[points[:, 2] > -np.asarray(size, np.float64)[2] / 2 + floor_clearance_m]
+
+
 def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.ndarray, resolution: float,
                        reach_m: float, pad_m: float, floor_clearance_m: float, across_width: bool = False,
                        unseen_quantile: float | None = None) -> np.ndarray:
@@ -211,8 +218,7 @@ def under_top_envelope(cells_box: np.ndarray, points_box: np.ndarray, size: np.n
     columns still without one are kept (True). Metres."""
     size = np.asarray(size, np.float64)
     counts, edge = lattice_shape(size, resolution)
-    points = np.asarray(points_box, np.float64).reshape(-1, 3)
-    points = points[points[:, 2] > -size[2] / 2 + floor_clearance_m]
+    points = body_points(points_box, size, floor_clearance_m)
     inside, flat = lattice_cells(points, size, edge, counts)
     top = np.full(int(counts[0] * counts[1]), -np.inf)
     np.maximum.at(top, flat // counts[2], points[inside, 2])
@@ -242,8 +248,7 @@ def within_side_reach(cells_box: np.ndarray, points_box: np.ndarray, size: np.nd
     than min_points body points: every cell (True). Metres."""
     size = np.asarray(size, np.float64)
     cells = np.asarray(cells_box, np.float64).reshape(-1, 3)
-    points = np.asarray(points_box, np.float64).reshape(-1, 3)
-    body = points[points[:, 2] > -size[2] / 2 + floor_clearance_m]
+    body = body_points(points_box, size, floor_clearance_m)
     if len(body) < min_points:
         return np.ones(len(cells), dtype=bool)
     _, edge = lattice_shape(size, resolution)
@@ -269,9 +274,9 @@ def object_solid_samples(points_box: np.ndarray, origins_box: np.ndarray, size: 
                          envelope: TopEnvelope | None = None) -> SolidSamples:
     """An object's carved solid (`carve_object_solid` of its points_box (N, 3) seen from origins_box (N, 3), box
     of `size` (3,), cells of edge <= resolution, more carving rays `through`; all box frame, m), with `envelope`
-    only its cells `under_top_envelope` (and `within_side_reach` with envelope.side_quantile), as samples: the solid cells' centres, or with `corners` the 8 points
-    near each cell's corners (`cell_corner_points`, so the voxelizer marks every voxel a cell overlaps); each
-    sample observed when its cell holds a point."""
+    only its cells `under_top_envelope` (and `within_side_reach` with envelope.side_quantile), as samples: the
+    solid cells' centres, or with `corners` the 8 points near each cell's corners (`cell_corner_points`, so the
+    voxelizer marks every voxel a cell overlaps); each sample observed when its cell holds a point."""
     cells = carve_object_solid(points_box, origins_box, size, resolution=resolution, through=through)
     if envelope is not None:
         cells = cells[under_top_envelope(cells, points_box, size, resolution, envelope.reach_m, envelope.pad_m,

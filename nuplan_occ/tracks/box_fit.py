@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from nuplan_occ.aggregation.carve import body_points
 from nuplan_occ.io.types import Boxes
 
 
@@ -60,10 +61,6 @@ class FittedExtent:
     sides: bool = True
 
 
-def _body(points: np.ndarray, size: np.ndarray, floor_clearance_m: float) -> np.ndarray:
-    return points[points[:, 2] > -size[2] / 2 + floor_clearance_m]
-
-
 def _reach(body: np.ndarray, quantile: float) -> np.ndarray:
     return np.array([np.quantile(np.abs(body[:, 0]), quantile), np.quantile(np.abs(body[:, 1]), quantile),
                      np.quantile(body[:, 2], quantile)])
@@ -74,7 +71,7 @@ def grown_extent(points: np.ndarray, size: np.ndarray, params: BoxFitParams) -> 
     grown by params.grow_margin_m; None when the points are too few or already fit. Growth is symmetric about the
     centre in z too (z_shift 0)."""
     size = np.asarray(size, np.float64)
-    body = _body(points, size, params.floor_clearance_m)
+    body = body_points(points, size, params.floor_clearance_m)
     if len(body) < params.min_points:
         return None
     growth = np.clip(_reach(body, params.quantile) - size / 2, 0.0, params.grow_margin_m)
@@ -103,8 +100,9 @@ def shrunk_extent(points: np.ndarray, size: np.ndarray, params: BoxFitParams) ->
     reach = _reach(body, params.shrink_quantile) + params.pad_m
     new_half_xy = np.clip(reach[:2], floor[:2], half[:2])
     bottom = float(np.clip(low - params.pad_m, -half[2], -half[2] + params.floor_clearance_m))
-    top = reach[2] if reach[2] < half[2] else float(np.quantile(points[above_floor, 2], params.shrink_quantile)) + params.pad_m
-    top = float(np.clip(top, bottom, half[2] + params.raise_max_m))
+    if reach[2] >= half[2]:  # the top is filled: it rises to the points above it
+        reach[2] = np.quantile(points[above_floor, 2], params.shrink_quantile) + params.pad_m
+    top = float(np.clip(reach[2], bottom, half[2] + params.raise_max_m))
     height = max(top - bottom, 2 * floor[2])
     bottom = min(bottom, top - height)
     sides = not np.allclose(new_half_xy, half[:2], rtol=0.0, atol=1e-9)
@@ -134,8 +132,9 @@ def _gather(boxes: dict[int, Boxes], xyz_of, origin: np.ndarray, params: BoxFitP
             category[track] = c
         grow = np.array([c in params.grow_categories for c in picked.categories], dtype=bool)
         rise = params.raise_max_m * np.array([c in params.shrink_categories for c in picked.categories]) * ~grow
-        picked = replace(picked, sizes=picked.sizes + 2.0 * params.grow_margin_m * grow[:, None] + rise[:, None] * [0, 0, 1],
-                         centers=picked.centers + rise[:, None] * [0, 0, 0.5])
+        up = rise[:, None] * [0.0, 0.0, 1.0]
+        picked = replace(picked, sizes=picked.sizes + 2.0 * params.grow_margin_m * grow[:, None] + up,
+                         centers=picked.centers + up / 2)
         lift = dict(zip(picked.track_tokens, rise / 2))
         for track, (points, _) in points_per_box(xyz_of(i), picked, origin).items():
             views.setdefault(track, []).append(points + [0.0, 0.0, lift[track]])
