@@ -1,7 +1,9 @@
 """track: refine every track's box at every sweep against the track's own points.
 
-The stored boxes, moved into each sweep's ego frame with the refined ego pose, are the starting point; each
-track's points of each sweep (those inside its box) are registered to the points of its other sweeps
+The stored boxes, moved into each sweep's ego frame with the refined ego pose and smoothed over time in the
+global frame (as below, before any ICP: the per-frame errors of auto-labelled boxes, averaged away, would
+otherwise blur the model each frame is registered to), are the starting point; each track's points of each
+sweep (those inside its box) are registered to the points of its other sweeps
 (nuplan_occ.tracks.track_refine: 4-DoF point-to-plane ICP, the model rebuilt `rounds` times), which removes
 the box noise and the ego-pose error from the boxes at once, since the points are exact in their sweep's ego
 frame. The corrected boxes are then smoothed over time in the global frame (a static track gets one pose, a
@@ -16,7 +18,7 @@ of `fit_categories` grow to hold their track's points (an undersized box keeps i
 Inputs: `scene`, `registration`. Outputs: `object_boxes` (sweep position -> Boxes in that sweep's ego frame,
 corrected), `object_points` (sweep position -> track -> (points (n, 3), sensor origins (n, 3)) in the track's
 corrected box frame, m), `track_corrections` (track -> (F, 4) ICP corrections (dx, dy, dz m, dyaw rad) of its
-sweeps, zeros where not estimated).
+sweeps' smoothed stored boxes, zeros where not estimated).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from nuplan_occ.pipeline.settings import settings_from
 from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.tracks.box_snap import BoxSnapParams
 from nuplan_occ.aggregation.split import points_per_box
-from nuplan_occ.tracks.scene_tracks import (boxes_at_global_poses, boxes_in_ego,
+from nuplan_occ.tracks.scene_tracks import (boxes_at_global_poses, boxes_in_ego, presmoothed_boxes,
                                             smoothed_global_poses, snapped_static_poses)
 from nuplan_occ.tracks.track_refine import TrackRefineParams, refine_track
 from nuplan_occ.tracks.box_fit import BoxFitParams, fitted_boxes, fitted_extents
@@ -115,6 +117,8 @@ def run(inputs: dict, params: TrackParams) -> dict:
     for i in ok:
         for track in initial[i].track_tokens:
             frames_of.setdefault(track, []).append(i)
+    initial = presmoothed_boxes(scene, poses, initial, frames_of, refine)
+    first_points = {i: points_per_box(scene.sweeps[i].xyz, initial[i], origin) for i in ok}
     corrections = {}
     for track, positions in frames_of.items():
         views = [first_points[i].get(track, (np.zeros((0, 3)), None))[0] for i in positions]

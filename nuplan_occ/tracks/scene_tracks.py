@@ -58,6 +58,20 @@ def smoothed_global_poses(scene, poses: np.ndarray, initial: dict[int, Boxes], t
     return smooth_track_poses(times, np.array(corrected), np.array(weights), static, params.smooth_window_s), static
 
 
+def presmoothed_boxes(scene, poses: np.ndarray, initial: dict[int, Boxes], frames_of: dict[str, list[int]],
+                      params: TrackRefineParams) -> dict[int, Boxes]:
+    """`initial` (sweep position -> that sweep's boxes, ego frame) with every track's boxes smoothed over time in
+    the global frame before any ICP (smoothed_global_poses with zero corrections): the starting boxes of the
+    track ICP, whose model, built from the frames' points in these boxes, is then sharp where the stored boxes'
+    independent per-frame errors would blur it."""
+    smoothed = {track: smoothed_global_poses(scene, poses, initial, track, positions, np.zeros((len(positions), 4)),
+                                             [0] * len(positions), params)[0]
+                for track, positions in frames_of.items()}
+    return {i: boxes_at_global_poses(boxes, invert_transform(poses[i]),
+                                     [smoothed[track][frames_of[track].index(i)] for track in boxes.track_tokens])
+            for i, boxes in initial.items()}
+
+
 def snapped_static_poses(scene, poses: np.ndarray, static: dict[str, tuple[list[int], np.ndarray, np.ndarray]],
                          params: BoxSnapParams) -> dict[str, np.ndarray]:
     """track -> (4,) global pose (x, y, z, yaw) of each static track's box moved in x, y onto the points near
