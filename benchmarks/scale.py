@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from nuplan_occ import __version__
+from nuplan_occ.stages import PIPELINE
 from benchmarks.small import BENCH_SEED, _table, bench_quality
 from benchmarks.scale_plot import plot_stage_history, stage_history
 
@@ -367,8 +368,7 @@ def render_scale_markdown(report: dict, picture: bool = False) -> str:
     return "\n".join(parts)
 
 
-STAGE_ORDER = ["start", "load", "split", "filter", "register", "track", "lidar_rays", "aggregate", "reconstruct",
-               "support", "label_map", "voxelize", "label", "visibility", "write", "done"]
+STAGE_ORDER = ["start", *(stage.name for stage in PIPELINE), "done"]
 
 RECORDED_BASELINE = {
     "text": "Measured 2026-12-01 on commit 4ae3972: 10 s `city` scene (100 output frames, "

@@ -1,8 +1,8 @@
 """The build DAG, top to bottom: one module per stage, each declaring its inputs, outputs, typed params and
 the library functions it calls. `PIPELINE` is the one place that holds their order.
 
-    scene stages: load -> split -> filter -> register -> track -> lidar_rays -> aggregate -> reconstruct
-                  -> support -> label_map
+    scene stages: load -> split -> filter -> register -> label_map -> track -> lidar_rays -> aggregate
+                  -> reconstruct -> support
     frame stages, streamed frame by frame: voxelize -> label -> visibility -> write
 """
 
@@ -14,12 +14,12 @@ PIPELINE = [
     split.STAGE,
     filter.STAGE,
     register.STAGE,
+    label_map.STAGE,
     track.STAGE,
     lidar_rays.STAGE,
     aggregate.STAGE,
     reconstruct.STAGE,
     support.STAGE,
-    label_map.STAGE,
     voxelize.STAGE,
     label.STAGE,
     visibility.STAGE,

@@ -15,7 +15,8 @@ whose boxes hold no point above their floor is dropped (a box on nothing gets no
 of `fit_categories` grow to hold their track's points (an undersized box keeps its whole object) and those of
 `shrink_categories` shrink to them (an oversized box draws no empty volume; nuplan_occ.tracks.box_fit).
 
-Inputs: `scene`, `registration`. Outputs: `object_boxes` (sweep position -> Boxes in that sweep's ego frame,
+Inputs: `scene`, `registration`, `map_alignment` (the boxes are placed with the registered poses corrected by
+it, `boxes_on_map`). Outputs: `object_boxes` (sweep position -> Boxes in that sweep's ego frame,
 corrected), `object_points` (sweep position -> track -> (points (n, 3), sensor origins (n, 3)) in the track's
 corrected box frame, m), `track_corrections` (track -> (F, 4) ICP corrections (dx, dy, dz m, dyaw rad) of its
 sweeps' smoothed stored boxes, zeros where not estimated).
@@ -97,6 +98,10 @@ class TrackParams:
     shrink_pad_m: float = param(FIT.pad_m, "a shrunk box reaches this far beyond its points", unit="m", low=0.0)
     shrink_raise_m: float = param(FIT.raise_max_m, "the top of a box of shrink_categories rises by at most this to "
                                   "hold its track's points above it (a box too low for its object)", unit="m", low=0.0)
+    boxes_on_map: bool = param(True, "place the log's boxes with the poses corrected against the map's paint (the "
+                               "label_map stage; the written ego_to_global): a scene's offset or turn against the "
+                               "global frame, which the map shows and the boxes share, moves no box off its points "
+                               "(False, or no alignment: the registered poses)")
     snap_keep_ratio: float = param(SNAP.keep_ratio, "a box already holding this share of the best shift's points "
                                    "stays", low=0.0, high=1.0)
 
@@ -104,6 +109,8 @@ class TrackParams:
 def run(inputs: dict, params: TrackParams) -> dict:
     scene = inputs["scene"]
     poses = inputs["registration"].poses
+    if params.boxes_on_map and inputs["map_alignment"] is not None:
+        poses = inputs["map_alignment"].correction @ poses
     refine = settings_from(TrackRefineParams, params)
     ok = scene.ok_indices()
     origin = np.asarray(scene.sensor_origin_ego, dtype=np.float64)
@@ -152,5 +159,5 @@ def run(inputs: dict, params: TrackParams) -> dict:
     return {"object_boxes": object_boxes, "object_points": object_points, "track_corrections": track_corrections}
 
 
-STAGE = Stage("track", inputs=("scene", "registration"), outputs=("object_boxes", "object_points", "track_corrections"),
+STAGE = Stage("track", inputs=("scene", "registration", "map_alignment"), outputs=("object_boxes", "object_points", "track_corrections"),
               params_type=TrackParams, run=run, kept=True)

@@ -36,7 +36,7 @@ def test_three_concurrent_builds_one_killed_and_rerun_equal_a_serial_build(synth
     others = [start(), start("--num-shards", "1", "--shard-index", "0")]  # the same log, at the same time
     deadline = time.monotonic() + 900
     # killed mid-scene: a scene's scene steps are cached and its frames stream
-    while time.monotonic() < deadline and not list((out / "work").rglob("label_map/*.pkl.zst")):
+    while time.monotonic() < deadline and not list((out / "work").rglob("support/*.pkl.zst")):
         time.sleep(0.05)
     os.killpg(killed.pid, signal.SIGKILL)
     assert killed.wait() == -signal.SIGKILL

@@ -1,5 +1,5 @@
-"""The track stage on a moving car seen through auto-label noise: its boxes end up on its points (the exact
-synthetic truth)."""
+"""The track stage on a moving car seen through auto-label noise, and through a scene pose that sits turned and
+shifted against the global frame: its boxes end up on its points (the exact synthetic truth)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 
 from nuplan_occ.geometry import yaw_matrix
 from nuplan_occ.io.types import Boxes
+from nuplan_occ.map_labels.map_align import MapAlignment
 from nuplan_occ.stages.track import TrackParams, run
 from nuplan_occ.synth.agents import mesh_template
 
@@ -31,8 +32,9 @@ def _surface(rng: np.random.Generator, n: int) -> np.ndarray:
     return a[:, 0] + u[:, :1] * (a[:, 1] - a[:, 0]) + u[:, 1:] * (a[:, 2] - a[:, 0])
 
 
-def _scene(seed: int):
-    """(scene, registration, true poses (SWEEPS, 4)): the ego stands at the global origin, registered there."""
+def _scene(seed: int, scene_error: np.ndarray = np.eye(4)):
+    """(scene, registration, true poses (SWEEPS, 4)): the ego stands at the global origin; the registration's
+    poses are scene_error (4, 4; T_global_from_ego as registered, the truth being the identity)."""
     rng = np.random.default_rng(seed)
     t = np.arange(SWEEPS) * 0.05
     truth = _true_poses(t)
@@ -48,7 +50,7 @@ def _scene(seed: int):
         sweeps.append(SimpleNamespace(timestamp_us=int(t[f] * 1e6), boxes_global=boxes, xyz=np.vstack([body, ground])))
     scene = SimpleNamespace(sweeps=sweeps, sensor_origin_ego=np.array([0.0, 0.0, 1.8]),
                             ok_indices=lambda: list(range(SWEEPS)))
-    registration = SimpleNamespace(poses=np.repeat(np.eye(4)[None], SWEEPS, axis=0))
+    registration = SimpleNamespace(poses=np.repeat(scene_error[None], SWEEPS, axis=0))
     return scene, registration, truth
 
 
@@ -67,7 +69,8 @@ def test_a_moving_cars_noisy_boxes_end_on_its_points():
     position, raw_position, heading = [], [], []
     for seed in range(3):
         scene, registration, truth = _scene(seed)
-        err, dyaw = _box_errors(run({"scene": scene, "registration": registration}, TrackParams()), truth)
+        err, dyaw = _box_errors(run({"scene": scene, "registration": registration, "map_alignment": None},
+                                    TrackParams()), truth)
         logged = np.array([s.boxes_global.centers[0] for s in scene.sweeps])
         raw = np.linalg.norm(logged[:, :2] - truth[:, :2], axis=1)
         position.append(np.sqrt((err ** 2).mean()))
@@ -76,3 +79,22 @@ def test_a_moving_cars_noisy_boxes_end_on_its_points():
     assert np.mean(position) < np.mean(raw_position) / 6, (position, raw_position)
     assert np.mean(heading) < 3.0 / 5, heading
 
+
+def test_boxes_are_placed_with_the_poses_the_map_corrected():
+    """A scene registered 0.4 deg turned and 0.1 m shifted against the global frame (the map shows it, the boxes
+    share the global frame): with the map's correction the boxes land on the car; with the registered poses alone
+    (boxes_on_map off, or no alignment) they keep the scene's error, which no per-track ICP can see."""
+    turn = np.radians(0.4)
+    error = np.eye(4)
+    error[:2, :2] = [[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]
+    error[:2, 3] = [0.1, -0.05]
+    scene, registration, truth = _scene(0, error)
+    inverse = np.linalg.inv(error)
+    alignment = MapAlignment(dx=float(inverse[0, 3]), dy=float(inverse[1, 3]), dyaw=-turn, pivot=(0.0, 0.0),
+                             n_points=1000, rms_before=0.1, rms_after=0.02, applied=True)
+    inputs = {"scene": scene, "registration": registration}
+    on_map, _ = _box_errors(run({**inputs, "map_alignment": alignment}, TrackParams()), truth)
+    registered, _ = _box_errors(run({**inputs, "map_alignment": alignment}, TrackParams(boxes_on_map=False)), truth)
+    unaligned, _ = _box_errors(run({**inputs, "map_alignment": None}, TrackParams()), truth)
+    assert np.sqrt((on_map ** 2).mean()) < 0.04
+    assert np.sqrt((registered ** 2).mean()) > 0.1 and np.sqrt((unaligned ** 2).mean()) > 0.1
