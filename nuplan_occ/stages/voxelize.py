@@ -6,7 +6,8 @@ voxel) and objects filled inside their surface (nuplan_occ.voxel.compose). Gives
 log) and per-voxel flow. With `unboxed_movers`, the frame's own points that the aggregate removed as dynamic
 are painted into empty voxels as labeled clusters (nuplan_occ.voxel.movers), and the clusters of
 `mover_gather_categories` gather the flagged points of the `mover_gather_frames` output frames before and after,
-moved by their own motion, and are filled as the solid those outline (nuplan_occ.voxel.mover_solids). Then the voxels of
+moved by their own motion, and are filled as the solid those outline, while those of `mover_trace_categories` gather
+the `mover_trace_frames` around them and paint the gathered points as they are (nuplan_occ.voxel.mover_solids). Then the voxels of
 `ground_contact_categories`, boxed or not, reach down to the ground under them (nuplan_occ.voxel.ground_contact).
 With `clear_ego_box`, the voxels inside the ego vehicle's own box, above the ground layer, end empty
 (nuplan_occ.voxel.compose.clear_ego_box).
@@ -31,7 +32,7 @@ from nuplan_occ.pipeline.stage import Stage
 from nuplan_occ.voxel.compose import clear_ego_box, compose_frame
 from nuplan_occ.voxel.ground_contact import reach_down_to_ground
 from nuplan_occ.voxel.mover_gathering import GatherSettings
-from nuplan_occ.voxel.mover_solids import gathered_solids
+from nuplan_occ.voxel.mover_solids import gathered_solids, gathered_traces
 from nuplan_occ.voxel.movers import mover_voxels, movers_around, neighbour_movers, paint_empty, recurring_points
 from nuplan_occ.voxel.placement import placed_objects
 from nuplan_occ.voxel.surface_tiles import build_surface_tiles
@@ -92,6 +93,11 @@ class VoxelizeParams:
                                        "next", unit="m", low=0.0, low_open=True)
     mover_gather_min_overlap: float = param(0.3, "share of the smaller occupancy that must overlay to gather a "
                                             "frame", low=0.0, high=1.0)
+    mover_trace_categories: tuple[str, ...] = param(("bicycle",), "unboxed-mover classes that gather the flagged "
+                                                    "points of the mover_trace_frames output frames before and after "
+                                                    "and paint them as they are (no solid: a rider is no column)",
+                                                    choices=("vehicle", "bicycle"))
+    mover_trace_frames: int = param(1, "output frames before and after that such a mover gathers (0: none)", low=0)
     mover_solid_reach_m: float = param(0.5, "a gathered mover's column without points reaches up to the lowest top "
                                        "of the columns within this distance", unit="m", low=0.0)
     mover_bicycle_ground_fill_m: float = param(0.5, "a bicycle's columns whose lowest voxel is at most this high "
@@ -151,6 +157,14 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
                 GatherSettings(step_m=params.mover_gather_step_m, min_overlap=params.mover_gather_min_overlap),
                 params.mover_solid_reach_m, DEFAULT_GRID)
             grids.mover_voxels += paint_empty(grids, solids)
+        if params.mover_trace_categories and params.mover_trace_frames:
+            around = {step: transform_points(T_ego_from_scene, p) for step, p in
+                      movers_around(inputs["frame_movers"], position, params.mover_trace_frames).items()}
+            traces = gathered_traces(
+                movers, points_ego, around, tuple(LABELS.box_category_to_id[c] for c in params.mover_trace_categories),
+                GatherSettings(step_m=params.mover_gather_step_m, min_overlap=params.mover_gather_min_overlap),
+                DEFAULT_GRID)
+            grids.mover_voxels += paint_empty(grids, traces)
     reach_down_to_ground(grids, tuple(LABELS.box_category_to_id[c] for c in params.ground_contact_categories),
                          params.ground_contact_reach_m)
     if params.clear_ego_box:

@@ -1,6 +1,7 @@
-"""Unboxed vehicles as solids: each unboxed-mover cluster of a frame (nuplan_occ.voxel.movers) of the given
-classes gathers the points of the frames around it (nuplan_occ.voxel.mover_gathering) and is filled as the
-solid they outline.
+"""Unboxed movers completed from the frames around them: each unboxed-mover cluster of a frame
+(nuplan_occ.voxel.movers) of the given classes gathers the points of the frames around it
+(nuplan_occ.voxel.mover_gathering); a vehicle's are filled as the solid they outline (`gathered_solids`), a
+thin mover's are painted as they are (`gathered_traces`).
 
 A vehicle is solid from the road up to its outline. In a grid of 0.25 m voxels its roof and its underside
 occupy voxels that rays pass through without a return there (a ray grazing the roof, one passing under the
@@ -65,18 +66,15 @@ def outline_solid(points: np.ndarray, ground_height: np.ndarray | None, reach_m:
     return np.c_[ci[run], cj[run], z].astype(np.int64)
 
 
-def gathered_solids(movers: MoverVoxels, own_points: np.ndarray, neighbours: dict[int, np.ndarray],
-                    ground_height: np.ndarray | None, class_ids: tuple[int, ...], settings: GatherSettings,
-                    reach_m: float, grid: GridSpec = DEFAULT_GRID) -> MoverVoxels:
-    """The solids of the frame's mover clusters of class_ids (module doc). movers: the frame's mover voxels
-    (`mover_voxels`); own_points (N, 3): the frame's flagged points; neighbours: signed output frame step ->
-    that frame's flagged points (K, 3), all in this frame's ego frame (m). Each solid's voxels take its
-    cluster's class and fill empty voxels only (over_ground False)."""
+def _gathered_clusters(movers: MoverVoxels, own_points: np.ndarray, neighbours: dict[int, np.ndarray],
+                       class_ids: tuple[int, ...], settings: GatherSettings, grid: GridSpec
+                       ) -> list[tuple[int, np.ndarray]]:
+    """(class id, gathered points (M, 3)) of each of the frame's mover clusters of class_ids holding at least
+    MIN_OWN_POINTS of its own points (arguments as in `gathered_solids`)."""
     chosen = np.isin(movers.class_ids, np.asarray(class_ids, np.uint8))
     voxels, classes = movers.indices[chosen], movers.class_ids[chosen]
-    empty = MoverVoxels(np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros(0, bool))
     if not len(voxels) or not len(own_points):
-        return empty
+        return []
     cluster_of, count = chebyshev_clusters(voxels, 3)
     flat = np.ravel_multi_index(tuple(voxels.T), grid.shape)
     order = np.argsort(flat)
@@ -85,15 +83,44 @@ def gathered_solids(movers: MoverVoxels, own_points: np.ndarray, neighbours: dic
     slot = np.clip(np.searchsorted(flat[order], point_flat), 0, len(flat) - 1)
     hit = inside & (flat[order][slot] == point_flat)
     point_cluster = np.where(hit, cluster_of[order][slot], -1)
-    parts, labels = [], []
+    out = []
     for cluster in range(count):
         own = own_points[point_cluster == cluster]
-        if len(own) < MIN_OWN_POINTS:
-            continue
-        solid = outline_solid(gather_mover(own, neighbours, settings, grid.voxel_size), ground_height, reach_m, grid)
-        parts.append(solid)
-        labels.append(np.full(len(solid), classes[cluster_of == cluster][0], np.uint8))
+        if len(own) >= MIN_OWN_POINTS:
+            out.append((int(classes[cluster_of == cluster][0]), gather_mover(own, neighbours, settings, grid.voxel_size)))
+    return out
+
+
+def _as_movers(parts: list[np.ndarray], labels: list[int]) -> MoverVoxels:
+    """MoverVoxels of voxel arrays (K_i, 3) with one class each; they fill empty voxels only."""
     if not parts:
-        return empty
+        return MoverVoxels(np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros(0, bool))
     indices = np.vstack(parts)
-    return MoverVoxels(indices, np.concatenate(labels), np.zeros(len(indices), bool))
+    classes = np.concatenate([np.full(len(part), label, np.uint8) for part, label in zip(parts, labels)])
+    return MoverVoxels(indices, classes, np.zeros(len(indices), bool))
+
+
+def gathered_solids(movers: MoverVoxels, own_points: np.ndarray, neighbours: dict[int, np.ndarray],
+                    ground_height: np.ndarray | None, class_ids: tuple[int, ...], settings: GatherSettings,
+                    reach_m: float, grid: GridSpec = DEFAULT_GRID) -> MoverVoxels:
+    """The solids of the frame's mover clusters of class_ids (module doc). movers: the frame's mover voxels
+    (`mover_voxels`); own_points (N, 3): the frame's flagged points; neighbours: signed output frame step ->
+    that frame's flagged points (K, 3), all in this frame's ego frame (m). Each solid's voxels take its
+    cluster's class and fill empty voxels only (over_ground False)."""
+    gathered = _gathered_clusters(movers, own_points, neighbours, class_ids, settings, grid)
+    return _as_movers([outline_solid(points, ground_height, reach_m, grid) for _, points in gathered],
+                      [label for label, _ in gathered])
+
+
+def gathered_traces(movers: MoverVoxels, own_points: np.ndarray, neighbours: dict[int, np.ndarray],
+                    class_ids: tuple[int, ...], settings: GatherSettings, grid: GridSpec = DEFAULT_GRID) -> MoverVoxels:
+    """The voxels of the points each of the frame's mover clusters of class_ids gathers from the neighbour
+    frames (arguments as in `gathered_solids`), no solid: the sides of a thin mover (a cyclist) that this frame's
+    rays missed and the frames just before or after saw. They take the cluster's class and fill empty voxels
+    only."""
+    gathered = _gathered_clusters(movers, own_points, neighbours, class_ids, settings, grid)
+    parts = []
+    for _, points in gathered:
+        idx, inside = grid.point_to_index(points)
+        parts.append(np.unique(idx[inside], axis=0).astype(np.int64))
+    return _as_movers(parts, [label for label, _ in gathered])

@@ -1,14 +1,16 @@
-"""Unboxed vehicles as solids: the points gathered onto a mover outline a solid from the road up, so its roof
-and underside voxels (which rays graze without a return in them) are its own; on exact box geometry."""
+"""Unboxed movers completed from the frames around them, on exact box geometry: the points gathered onto a vehicle
+outline a solid from the road up, so its roof and underside voxels (which rays graze without a return in them)
+are its own; a cyclist's gathered points are painted as they are, so what the frames around saw comes back
+and no solid fills the air inside it."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from nuplan_occ.grid import DEFAULT_GRID
-from nuplan_occ.labels import OTHER, VEHICLE
+from nuplan_occ.labels import BICYCLE, OTHER, VEHICLE
 from nuplan_occ.voxel.mover_gathering import GatherSettings
-from nuplan_occ.voxel.mover_solids import gathered_solids, outline_solid
+from nuplan_occ.voxel.mover_solids import gathered_solids, gathered_traces, outline_solid
 from nuplan_occ.voxel.movers import MoverVoxels
 
 GROUND_Z = -1.6  # ego frame: the road under the box; its voxel layer is 5
@@ -96,3 +98,41 @@ def test_each_vehicle_cluster_gathers_its_neighbours_and_other_classes_are_left(
     box = _box_voxels()
     assert len(painted & box) >= 0.95 * len(box)
     assert len(painted - box) <= 0.05 * len(box)
+
+
+RIDER_LO, RIDER_HI = np.array([10.1, 5.1, GROUND_Z + 0.2]), np.array([11.9, 5.85, GROUND_Z + 1.7])
+
+
+def _rider_faces(x_shift: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(left side, front): returns, 400 per square metre, on the left side (y = RIDER_HI y) and on the front
+    (x = RIDER_HI x) of a 1.8 x 0.75 x 1.5 m rider box, moved by x_shift along x."""
+    rng = np.random.default_rng(seed)
+    (x0, y0, z0), (x1, y1, z1) = RIDER_LO, RIDER_HI
+    side = rng.uniform([x0, z0], [x1, z1], (int(400 * (x1 - x0) * (z1 - z0)), 2))
+    front = rng.uniform([y0, z0], [y1, z1], (int(400 * (y1 - y0) * (z1 - z0)), 2))
+    return (np.c_[side[:, 0] + x_shift, np.full(len(side), y1 - 0.01), side[:, 1]],
+            np.c_[np.full(len(front), x1 - 0.01 + x_shift), front])
+
+
+def _voxel_set(points: np.ndarray) -> set[tuple[int, int, int]]:
+    return {tuple(v) for v in np.unique(DEFAULT_GRID.point_to_index(points)[0], axis=0).tolist()}
+
+
+def test_a_cyclist_takes_what_the_frames_around_saw_and_no_solid() -> None:
+    """This frame saw the rider's left side only; the frames just before and after (0.5 m per frame along x)
+    saw its front too. The trace paints the front where the rider is now and nothing inside the rider (no
+    solid); a vehicle cluster is left to gathered_solids."""
+    own, front_now = _rider_faces(0.0, seed=1)
+    neighbours = {k: np.vstack(_rider_faces(0.5 * k, seed=k + 5)) for k in (-1, 1)}
+    voxels = np.unique(DEFAULT_GRID.point_to_index(own)[0], axis=0)
+    movers = MoverVoxels(voxels, np.full(len(voxels), BICYCLE, np.uint8), np.zeros(len(voxels), bool))
+    traces = gathered_traces(movers, own, neighbours, (BICYCLE,), GatherSettings())
+    assert set(traces.class_ids.tolist()) == {BICYCLE}
+    painted = {tuple(v) for v in traces.indices.tolist()}
+    front, side = _voxel_set(front_now), _voxel_set(own)
+    assert len(painted & front) >= 0.9 * len(front - side)
+    assert len(painted - front - side) <= 0.05 * len(painted)
+    centres = DEFAULT_GRID.index_to_center(np.array(sorted(painted)))
+    inside = np.all((centres > RIDER_LO + DEFAULT_GRID.voxel_size) & (centres < RIDER_HI - DEFAULT_GRID.voxel_size), axis=1)
+    assert not inside.any()
+    assert len(gathered_traces(movers, own, neighbours, (VEHICLE,), GatherSettings()).indices) == 0
