@@ -4,23 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from vehicle_surface import surface_samples
 
 from nuplan_occ.points import PointInputError
 from nuplan_occ.tracks.track_refine import TrackRefineParams, apply_correction, corrected_box, fix_gauge, refine_track
 from nuplan_occ.geometry import yaw_matrix
-from nuplan_occ.synth.agents import mesh_template
 
 SIZE = np.array([4.7, 1.9, 1.6])
-
-
-def _surface_samples(rng: np.random.Generator, n: int) -> np.ndarray:
-    """n points on the synthetic vehicle's surface, box frame."""
-    tris = mesh_template("vehicle", SIZE)
-    a = tris[rng.integers(len(tris), size=n)]
-    u = rng.random((n, 2))
-    flip = u.sum(axis=1) > 1
-    u[flip] = 1 - u[flip]
-    return a[:, 0] + u[:, :1] * (a[:, 1] - a[:, 0]) + u[:, 1:] * (a[:, 2] - a[:, 0])
 
 
 def _views(seed: int, frames: int = 24):
@@ -28,7 +18,7 @@ def _views(seed: int, frames: int = 24):
     rng = np.random.default_rng(seed)
     views, errors = [], []
     for _ in range(frames):
-        p = _surface_samples(rng, 3000)
+        p = surface_samples(rng, 3000, SIZE)
         side = [p[:, 0] > 1, p[:, 0] < -1, p[:, 1] > 0.5, p[:, 1] < -0.5][rng.integers(4)]
         p = p[side | (p[:, 2] > 0.3)][:700]
         p = p + rng.normal(0, 0.015, p.shape)

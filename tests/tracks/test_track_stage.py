@@ -6,12 +6,12 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+from vehicle_surface import surface_samples
 
 from nuplan_occ.geometry import yaw_matrix
 from nuplan_occ.io.types import Boxes
 from nuplan_occ.map_labels.map_align import MapAlignment
 from nuplan_occ.stages.track import TrackParams, run
-from nuplan_occ.synth.agents import mesh_template
 
 SIZE = np.array([4.7, 1.9, 1.6])
 SWEEPS = 60  # 3 s at 20 Hz
@@ -23,15 +23,6 @@ def _true_poses(t: np.ndarray) -> np.ndarray:
     return np.c_[8.0 * np.sin(yaw) / 0.1 + 5.0, 8.0 * (1 - np.cos(yaw)) / 0.1 - 6.0, np.full_like(t, 0.8), yaw]
 
 
-def _surface(rng: np.random.Generator, n: int) -> np.ndarray:
-    tris = mesh_template("vehicle", SIZE)
-    a = tris[rng.integers(len(tris), size=n)]
-    u = rng.random((n, 2))
-    flip = u.sum(axis=1) > 1
-    u[flip] = 1 - u[flip]
-    return a[:, 0] + u[:, :1] * (a[:, 1] - a[:, 0]) + u[:, 1:] * (a[:, 2] - a[:, 0])
-
-
 def _scene(seed: int, scene_error: np.ndarray = np.eye(4)):
     """(scene, registration, true poses (SWEEPS, 4)): the ego stands at the global origin; the registration's
     poses are scene_error (4, 4; T_global_from_ego as registered, the truth being the identity)."""
@@ -41,7 +32,7 @@ def _scene(seed: int, scene_error: np.ndarray = np.eye(4)):
     sweeps = []
     ground = np.c_[rng.uniform(-10, 60, (4000, 2)), np.zeros(4000)]
     for f in range(SWEEPS):
-        body = _surface(rng, 3000)
+        body = surface_samples(rng, 3000, SIZE)
         body = body[(body[:, 1] > 0.3) | (body[:, 0] < -1.5) | (body[:, 2] > 0.5)][:800]  # its left, rear and top
         body = body @ yaw_matrix(truth[f, 3]).T + truth[f, :3] + rng.normal(0, 0.01, body.shape)
         noisy = truth[f] + np.r_[rng.normal(0, 0.15, 2), rng.normal(0, 0.05), np.radians(rng.normal(0, 3.0))]
