@@ -98,6 +98,8 @@ class VoxelizeParams:
                                                     "and paint them as they are (no solid: a rider is no column)",
                                                     choices=("vehicle", "bicycle"))
     mover_trace_frames: int = param(1, "output frames before and after that such a mover gathers (0: none)", low=0)
+    mover_trace_min_points: int = param(2, "a voxel such a mover paints holds at least this many of its gathered "
+                                        "points", low=1)
     mover_solid_reach_m: float = param(0.5, "a gathered mover's column without points reaches up to the lowest top "
                                        "of the columns within this distance", unit="m", low=0.0)
     mover_bicycle_ground_fill_m: float = param(0.5, "a bicycle's columns whose lowest voxel is at most this high "
@@ -163,7 +165,7 @@ def run(inputs: dict, frame: dict, params: VoxelizeParams) -> dict:
             traces = gathered_traces(
                 movers, points_ego, around, tuple(LABELS.box_category_to_id[c] for c in params.mover_trace_categories),
                 GatherSettings(step_m=params.mover_gather_step_m, min_overlap=params.mover_gather_min_overlap),
-                DEFAULT_GRID)
+                params.mover_trace_min_points, DEFAULT_GRID)
             grids.mover_voxels += paint_empty(grids, traces)
     reach_down_to_ground(grids, tuple(LABELS.box_category_to_id[c] for c in params.ground_contact_categories),
                          params.ground_contact_reach_m)

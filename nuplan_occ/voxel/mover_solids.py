@@ -113,14 +113,17 @@ def gathered_solids(movers: MoverVoxels, own_points: np.ndarray, neighbours: dic
 
 
 def gathered_traces(movers: MoverVoxels, own_points: np.ndarray, neighbours: dict[int, np.ndarray],
-                    class_ids: tuple[int, ...], settings: GatherSettings, grid: GridSpec = DEFAULT_GRID) -> MoverVoxels:
-    """The voxels of the points each of the frame's mover clusters of class_ids gathers from the neighbour
-    frames (arguments as in `gathered_solids`), no solid: the sides of a thin mover (a cyclist) that this frame's
-    rays missed and the frames just before or after saw. They take the cluster's class and fill empty voxels
-    only."""
+                    class_ids: tuple[int, ...], settings: GatherSettings, min_points: int,
+                    grid: GridSpec = DEFAULT_GRID) -> MoverVoxels:
+    """The voxels holding at least min_points of the points each of the frame's mover clusters of class_ids gathers
+    from the neighbour frames (arguments as in `gathered_solids`), no solid: the sides of a thin mover (a cyclist)
+    that this frame's rays missed and the frames just before or after saw. A voxel with fewer is left: a point or
+    two of a frame overlaid a little off land beside the mover. They take the cluster's class and fill empty
+    voxels only."""
     gathered = _gathered_clusters(movers, own_points, neighbours, class_ids, settings, grid)
     parts = []
     for _, points in gathered:
         idx, inside = grid.point_to_index(points)
-        parts.append(np.unique(idx[inside], axis=0).astype(np.int64))
+        voxels, count = np.unique(idx[inside], axis=0, return_counts=True)
+        parts.append(voxels[count >= min_points].astype(np.int64))
     return _as_movers(parts, [label for label, _ in gathered])

@@ -126,7 +126,7 @@ def test_a_cyclist_takes_what_the_frames_around_saw_and_no_solid() -> None:
     neighbours = {k: np.vstack(_rider_faces(0.5 * k, seed=k + 5)) for k in (-1, 1)}
     voxels = np.unique(DEFAULT_GRID.point_to_index(own)[0], axis=0)
     movers = MoverVoxels(voxels, np.full(len(voxels), BICYCLE, np.uint8), np.zeros(len(voxels), bool))
-    traces = gathered_traces(movers, own, neighbours, (BICYCLE,), GatherSettings())
+    traces = gathered_traces(movers, own, neighbours, (BICYCLE,), GatherSettings(), 2)
     assert set(traces.class_ids.tolist()) == {BICYCLE}
     painted = {tuple(v) for v in traces.indices.tolist()}
     front, side = _voxel_set(front_now), _voxel_set(own)
@@ -135,4 +135,4 @@ def test_a_cyclist_takes_what_the_frames_around_saw_and_no_solid() -> None:
     centres = DEFAULT_GRID.index_to_center(np.array(sorted(painted)))
     inside = np.all((centres > RIDER_LO + DEFAULT_GRID.voxel_size) & (centres < RIDER_HI - DEFAULT_GRID.voxel_size), axis=1)
     assert not inside.any()
-    assert len(gathered_traces(movers, own, neighbours, (VEHICLE,), GatherSettings()).indices) == 0
+    assert len(gathered_traces(movers, own, neighbours, (VEHICLE,), GatherSettings(), 2).indices) == 0
