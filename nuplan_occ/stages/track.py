@@ -115,9 +115,9 @@ def run(inputs: dict, params: TrackParams) -> dict:
     ok = scene.ok_indices()
     origin = np.asarray(scene.sensor_origin_ego, dtype=np.float64)
     initial = {i: boxes_in_ego(scene, poses, i) for i in ok}
-    first_points = {i: points_per_box(scene.sweeps[i].xyz, initial[i], origin) for i in ok}
     if params.empty_min_points > 0:
-        empty = empty_tracks(track_views(initial, first_points), track_heights(initial), params.empty_clearance_m,
+        held = {i: points_per_box(scene.sweeps[i].xyz, initial[i], origin) for i in ok}
+        empty = empty_tracks(track_views(initial, held), track_heights(initial), params.empty_clearance_m,
                              params.empty_min_points, params.empty_min_share)
         initial = {i: without_tracks(boxes, empty) for i, boxes in initial.items()}
     frames_of: dict[str, list[int]] = {}
